@@ -1,0 +1,31 @@
+"""Build of vesflow's Cython kernels (listed by name; see vesflow/_kernels/)."""
+import numpy
+from setuptools import Extension, setup
+from Cython.Build import cythonize
+
+KERNELS = [
+    "stokes",      # direct Stokeslet / stresslet sums, source -> target (far field, near/self smooth rules)
+    "search",      # cell-list near-pair search
+]
+
+compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2"]  # no -ffast-math: singular quadrature needs exact cancellation
+extensions = [
+    Extension(
+        f"vesflow._kernels.{name}",
+        [f"vesflow/_kernels/{name}.pyx"],
+        include_dirs=[numpy.get_include()],
+        extra_compile_args=compile_args,
+        extra_link_args=["-fopenmp"],
+        define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION")],
+    )
+    for name in KERNELS
+]
+
+setup(
+    ext_modules=cythonize(
+        extensions,
+        language_level=3,
+        compiler_directives={"boundscheck": False, "wraparound": False, "cdivision": True,
+                             "initializedcheck": False},
+    ),
+)

@@ -1,0 +1,40 @@
+"""The one exceptions module: every message says what was wrong, where, and what to do."""
+
+
+class VesflowError(Exception):
+    """Base of all vesflow errors."""
+
+    exit_status = 1
+
+
+class SceneError(VesflowError):
+    """Bad input: a scene key, an option value.  The CLI prints it on one line and exits 2."""
+
+    exit_status = 2
+
+
+class OptionError(SceneError):
+    """A bad command-line option value."""
+
+
+class ConvergenceError(VesflowError):
+    """A KSP solve failed: carries PETSc's reason and the iteration count."""
+
+    exit_status = 3
+
+    def __init__(self, message, reason=None, iterations=None):
+        super().__init__(message)
+        self.reason = reason
+        self.iterations = iterations
+
+
+class CollisionError(VesflowError):
+    """Surfaces touch or overlap and the step could not be recovered."""
+
+    exit_status = 3
+
+
+class NumericalFailure(VesflowError):
+    """Unrecoverable numerical failure (NaN, dt below its minimum); last good state was saved."""
+
+    exit_status = 3
