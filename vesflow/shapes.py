@@ -1,0 +1,134 @@
+"""Initial vesicle shapes as spherical-harmonic coefficients (method reference, section 1).
+
+Every shape is parameterized over the unit sphere so that its coordinates are low-degree
+polynomials in sin/cos of theta and phi (exactly representable for p >= 5), then scaled
+to an effective radius R0 = sqrt(A / 4 pi), rotated (ZYZ Euler angles, degrees) about
+its centre and moved to its centre.
+
+- sphere, ellipsoid (semi-axes a, b, c along x, y, z): X = (a sin t cos p, b sin t sin p, c cos t)
+- oblate / prolate: spheroids (a, a, c), c/a solved for the requested reduced volume
+- biconcave (Evans and Fung 1972): X = (sin t cos p, sin t sin p, s/2 cos t (c0 + c2 sin^2 t + c4 sin^4 t)),
+  c0 = 0.207, c2 = 2.003, c4 = -1.123; the height factor s (1 for the published cell,
+  reduced volume ~0.644) is solved for a requested reduced volume.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from scipy.optimize import brentq
+
+from . import sph
+from .surface import Surface
+
+EVANS_FUNG = (0.207, 2.003, -1.123)
+SHAPES = ("sphere", "ellipsoid", "oblate", "prolate", "biconcave")
+FIT_P = 8   # every shape is exact at degree <= 5; fits are done at this degree and resampled
+
+
+def _spheroid_area(a, c):
+    if abs(a - c) < 1e-14 * a:
+        return 4.0 * np.pi * a * a
+    if c < a:  # oblate
+        e = math.sqrt(1.0 - c * c / (a * a))
+        return 2.0 * np.pi * a * a * (1.0 + (1.0 - e * e) / e * math.atanh(e))
+    e = math.sqrt(1.0 - a * a / (c * c))
+    return 2.0 * np.pi * a * a * (1.0 + c / (a * e) * math.asin(e))
+
+
+def spheroid_reduced_volume(ratio):
+    """Reduced volume of the spheroid with semi-axes (1, 1, ratio)."""
+    return 6.0 * math.sqrt(math.pi) * (4.0 / 3.0 * math.pi * ratio) / _spheroid_area(1.0, ratio) ** 1.5
+
+
+def spheroid_axes(kind, reduced_volume):
+    """Semi-axes (1, 1, c) of the oblate (c < 1) or prolate (c > 1) spheroid of reduced volume v."""
+    v = float(reduced_volume)
+    if not 0.0 < v <= 1.0:
+        raise ValueError(f"reduced_volume = {v}: must be in (0, 1]")
+    if v == 1.0:
+        return (1.0, 1.0, 1.0)
+    f = lambda c: spheroid_reduced_volume(c) - v
+    if kind == "oblate":
+        c = brentq(f, 1e-6, 1.0 - 1e-15, xtol=1e-15, rtol=1e-15)
+    elif kind == "prolate":
+        c = brentq(f, 1.0 + 1e-15, 1e6, xtol=1e-15, rtol=1e-15)
+    else:
+        raise ValueError(f"spheroid kind must be oblate or prolate, got {kind!r}")
+    return (1.0, 1.0, c)
+
+
+def _grid_fit(fn, p=FIT_P):
+    """Coefficients (3, C) of X(theta, phi) given by fn(theta, phi) -> (3, npts) on the p-grid."""
+    T = sph.transform(p)
+    tt, pp = np.meshgrid(T.theta, T.phi, indexing="ij")
+    return T.analysis(fn(tt.ravel(), pp.ravel()))
+
+
+def ellipsoid_coeffs(axes, p):
+    a, b, c = axes
+    fit = _grid_fit(lambda t, f: np.array([a * np.sin(t) * np.cos(f), b * np.sin(t) * np.sin(f), c * np.cos(t)]))
+    return sph.resample(fit, FIT_P, p)
+
+
+def biconcave_coeffs(height_scale, p):
+    c0, c2, c4 = EVANS_FUNG
+    def X(t, f):
+        s2 = np.sin(t) ** 2
+        z = 0.5 * height_scale * np.cos(t) * (c0 + c2 * s2 + c4 * s2 * s2)
+        return np.array([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), z])
+    return sph.resample(_grid_fit(X), FIT_P, p)
+
+
+def _reduced_volume_of(coeffs, p):
+    return float(Surface(coeffs[None], p).reduced_volume(q=4 * p)[0])
+
+
+@lru_cache(maxsize=64)
+def biconcave_height_scale(reduced_volume):
+    """Height factor s of the Evans-Fung profile giving the requested reduced volume."""
+    v = float(reduced_volume)
+    f = lambda s: _reduced_volume_of(biconcave_coeffs(s, 16), 16) - v
+    lo, hi = 0.4, 1.6
+    if f(lo) * f(hi) > 0:
+        raise ValueError(f"reduced_volume = {v}: the biconcave shape reaches only "
+                         f"[{f(lo) + v:.3f}, {f(hi) + v:.3f}]")
+    return brentq(f, lo, hi, xtol=1e-14)
+
+
+def euler_zyz(angles_deg):
+    """Rotation matrix Rz(alpha) Ry(beta) Rz(gamma) for ZYZ Euler angles in degrees."""
+    a, b, g = np.radians(angles_deg)
+    def rz(t):
+        c, s = np.cos(t), np.sin(t)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    cb, sb = np.cos(b), np.sin(b)
+    ry = np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
+    return rz(a) @ ry @ rz(g)
+
+
+def unit_shape_coeffs(shape, p, reduced_volume=None, axes=None):
+    """Coefficients (3, C) of the unscaled shape centred at the origin."""
+    if shape == "sphere":
+        return ellipsoid_coeffs((1.0, 1.0, 1.0), p)
+    if shape == "ellipsoid":
+        if axes is None or len(axes) != 3 or min(axes) <= 0:
+            raise ValueError(f"ellipsoid axes = {axes}: need three positive semi-axes")
+        return ellipsoid_coeffs(tuple(float(a) for a in axes), p)
+    if shape in ("oblate", "prolate"):
+        return ellipsoid_coeffs(spheroid_axes(shape, 0.85 if reduced_volume is None else reduced_volume), p)
+    if shape == "biconcave":
+        s = 1.0 if reduced_volume is None else biconcave_height_scale(round(float(reduced_volume), 14))
+        return biconcave_coeffs(s, p)
+    raise ValueError(f"shape = {shape!r}: must be one of {', '.join(SHAPES)}")
+
+
+def make_shape(shape, p, *, radius=1.0, center=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0),
+               reduced_volume=None, axes=None):
+    """Position coefficients (3, C) of a shape scaled to effective radius `radius`, rotated, placed."""
+    c = unit_shape_coeffs(shape, p, reduced_volume, axes)
+    r0 = float(Surface(c[None], p).effective_radius(q=max(2 * p, 16))[0])
+    c = (radius / r0) * (euler_zyz(rotation) @ c)
+    c[:, 0] += np.sqrt(4.0 * np.pi) * np.asarray(center, dtype=float)
+    return c

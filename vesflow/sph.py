@@ -1,0 +1,358 @@
+"""Real spherical harmonics on Gauss-Legendre grids (method reference, section 2; paper 3.1).
+
+Basis (orthonormal on the unit sphere, no Condon-Shortley phase):
+    Y_n^0 = lam_n^0(cos t),  Y_n^{m,c} = sqrt2 lam_n^m(cos t) cos(m p),  Y_n^{m,s} = sqrt2 lam_n^m(cos t) sin(m p)
+with lam_n^m = sqrt((2n+1)/(4 pi) (n-m)!/(n+m)!) P_n^m, so that int lam^2 dx = 1/(2 pi).
+
+Flat coefficient layout of degree p ("full", (p+1)^2 entries), m-blocks:
+    [m=0: n=0..p] [m=1 cos: n=1..p] [m=1 sin: n=1..p] ... [m=p cos: n=p] [m=p sin: n=p]
+The last entry, the (n=p, m=p, sin) mode, vanishes at every point of the p-grid (2p longitudes),
+so fields of the method live in the "reduced" space of the first C = (p+1)^2 - 1 entries
+(docs/conventions.md).  Rotations act on the full space; synthesis on a q-grid with q > p
+resolves it.
+
+Grids: q+1 Gauss-Legendre latitudes (cos theta descending), 2q longitudes phi_j = pi j / q,
+flattened latitude-major.  All transforms are batched over leading axes.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+
+SQRT2 = np.sqrt(2.0)
+
+
+def n_full(p):
+    """Number of coefficients of the full degree-p space."""
+    return (p + 1) ** 2
+
+
+def n_coeffs(p):
+    """Number of coefficients of the reduced degree-p space (m = p sine mode dropped)."""
+    return (p + 1) ** 2 - 1
+
+
+@lru_cache(maxsize=None)
+def index_tables(p):
+    """Per flat index: degree n, order m, kind (0 = cos, 1 = sin).  Read-only arrays."""
+    ns, ms, ks = [], [], []
+    for m in range(p + 1):
+        for kind in ((0,) if m == 0 else (0, 1)):
+            for n in range(m, p + 1):
+                ns.append(n)
+                ms.append(m)
+                ks.append(kind)
+    out = tuple(np.array(a, dtype=np.int64) for a in (ns, ms, ks))
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
+def flat_index(p, n, m, kind=0):
+    """Flat position of mode (n, m, kind) in the degree-p layout."""
+    ns, ms, ks = index_tables(p)
+    hit = np.nonzero((ns == n) & (ms == m) & (ks == kind))[0]
+    if len(hit) != 1:
+        raise ValueError(f"no mode n={n}, m={m}, kind={kind} at degree {p}")
+    return int(hit[0])
+
+
+def legendre(p, x):
+    """Normalized associated Legendre functions and theta derivatives.
+
+    Returns (lam, dlam, d2lam), each of shape (p+1 [m], len(x), p+1 [n]), zero for n < m;
+    derivatives are with respect to theta = arccos(x) (|x| < 1 required).
+    """
+    x = np.asarray(x, dtype=float)
+    s = np.sqrt(1.0 - x * x)
+    lam = np.zeros((p + 1, len(x), p + 1))
+    mm = 1.0 / np.sqrt(4.0 * np.pi) * np.ones_like(x)
+    for m in range(p + 1):
+        if m > 0:
+            mm = mm * np.sqrt((2.0 * m + 1.0) / (2.0 * m)) * s
+        lam[m, :, m] = mm
+        if m + 1 <= p:
+            lam[m, :, m + 1] = np.sqrt(2.0 * m + 3.0) * x * mm
+        for n in range(m + 2, p + 1):
+            a = np.sqrt((4.0 * n * n - 1.0) / (n * n - m * m))
+            b = np.sqrt(((n - 1.0) ** 2 - m * m) / (4.0 * (n - 1.0) ** 2 - 1.0))
+            lam[m, :, n] = a * (x * lam[m, :, n - 1] - b * lam[m, :, n - 2])
+    dlam = np.zeros_like(lam)
+    with np.errstate(divide="ignore", invalid="ignore"):   # derivatives are undefined at the poles
+        dlam, d2lam = _legendre_derivatives(p, x, s, lam, dlam)
+    return lam, dlam, d2lam
+
+
+def _legendre_derivatives(p, x, s, lam, dlam):
+    for m in range(p + 1):
+        for n in range(m, p + 1):
+            prev = lam[m, :, n - 1] if n - 1 >= m else 0.0
+            c = np.sqrt((2.0 * n + 1.0) / (2.0 * n - 1.0) * (n * n - m * m)) if n > m else 0.0
+            dlam[m, :, n] = (n * x * lam[m, :, n] - c * prev) / s
+    nn = np.arange(p + 1)[None, None, :]
+    mq = np.arange(p + 1)[:, None, None]
+    cot = (x / s)[None, :, None]
+    d2lam = -cot * dlam - (nn * (nn + 1) - mq * mq / (s * s)[None, :, None]) * lam
+    return dlam, d2lam
+
+
+@lru_cache(maxsize=None)
+def gauss_grid(q):
+    """Latitudes and longitudes of the q-grid: (theta (q+1,), phi (2q,), GL weights (q+1,))."""
+    x, w = np.polynomial.legendre.leggauss(q + 1)
+    order = np.argsort(-x)
+    x, w = x[order], w[order]
+    theta = np.arccos(x)
+    phi = np.pi * np.arange(2 * q) / q
+    for a in (theta, phi, w):
+        a.flags.writeable = False
+    return theta, phi, w
+
+
+class Transform:
+    """Synthesis Q (coefficients -> q-grid values, with derivatives) and analysis P (q-grid ->
+    degree-p coefficients) for degree p on the q-grid, batched over leading axes.
+
+    Cost O(p^2 q + p q^2) per field: a Legendre step (one small matrix per m, batched matmul)
+    and a Fourier step (dense trig matrices, BLAS).
+    """
+
+    def __init__(self, p, q=None):
+        q = p if q is None else q
+        if q < p:
+            raise ValueError(f"quadrature order q = {q} must be >= p = {p}")
+        self.p, self.q = p, q
+        self.theta, self.phi, self.glw = gauss_grid(q)
+        self.nlat, self.nlon = q + 1, 2 * q
+        self.npts = self.nlat * self.nlon
+        self.nfull = n_full(p)
+        self.ncoef = n_coeffs(p)
+        x = np.cos(self.theta)
+        self.lam, self.dlam, self.d2lam = legendre(p, x)
+        self.sin_theta = np.sqrt(1.0 - x * x)
+        # quadrature weight per grid point on the unit sphere (w_i pi / q)
+        self.weights = np.repeat(self.glw * np.pi / q, self.nlon)
+        # gather: padded (kind, m, n) <- flat
+        ns, ms, ks = index_tables(p)
+        self._pad_index = (ks, ms, ns)
+        m = np.arange(p + 1)
+        ang = np.outer(m, self.phi)                        # (p+1, nlon)
+        c = np.where(m == 0, 1.0, SQRT2)[:, None]
+        self.cos_m = c * np.cos(ang)
+        self.sin_m = c * np.sin(ang)
+        self.sin_m[0] = 0.0
+        mm = m[:, None].astype(float)
+        # analysis in phi: exact discrete inverse on 2q points, 1 / (c_m^2 N_m) with
+        # N_m = sum_j cos^2(m phi_j) = q (0 < m < q), 2q (m = 0 and the Nyquist mode m = q)
+        nm = np.full(p + 1, float(q))
+        nm[0] = 2.0 * q
+        if p == q:
+            nm[q] = 2.0 * q
+        aw = 2.0 * np.pi / (c[:, 0] ** 2 * nm)
+        self._fourier_analysis_cos = self.cos_m * aw[:, None]
+        self._fourier_analysis_sin = self.sin_m * aw[:, None]
+        self._dphi = mm
+
+    # ---------------------------------------------------------------- padding
+    def pad(self, coeffs):
+        """Flat (..., C or (p+1)^2) -> padded (..., 2, p+1 [m], p+1 [n])."""
+        coeffs = np.asarray(coeffs, dtype=float)
+        k = coeffs.shape[-1]
+        if k not in (self.ncoef, self.nfull):
+            raise ValueError(f"expected {self.ncoef} or {self.nfull} coefficients for p = {self.p}, got {k}")
+        out = np.zeros(coeffs.shape[:-1] + (2, self.p + 1, self.p + 1))
+        ks, ms, ns = (a[:k] for a in self._pad_index)
+        out[..., ks, ms, ns] = coeffs
+        return out
+
+    def unpad(self, padded, full=False):
+        """Padded (..., 2, p+1, p+1) -> flat (..., C) or (..., (p+1)^2)."""
+        k = self.nfull if full else self.ncoef
+        ks, ms, ns = (a[:k] for a in self._pad_index)
+        return padded[..., ks, ms, ns]
+
+    # ---------------------------------------------------------------- synthesis
+    def _legendre_step(self, padded, table):
+        # padded (..., 2, M, N) ; table (M, I, N) -> (..., 2, M, I)
+        return np.einsum("...kmn,min->...kmi", padded, table, optimize=True)
+
+    def _fourier_step(self, F, cosm, sinm):
+        # F (..., 2, M, I) -> (..., I, J)
+        return np.einsum("...mi,mj->...ij", F[..., 0, :, :], cosm, optimize=True) + \
+            np.einsum("...mi,mj->...ij", F[..., 1, :, :], sinm, optimize=True)
+
+    def synth(self, coeffs, d=None):
+        """Q: values on the q-grid, (..., npts).  d selects a derivative: None, 't', 'p', 'tt', 'tp', 'pp'."""
+        padded = self.pad(coeffs)
+        table = {None: self.lam, "p": self.lam, "pp": self.lam,
+                 "t": self.dlam, "tp": self.dlam, "tt": self.d2lam}[d]
+        F = self._legendre_step(padded, table)
+        m = self._dphi
+        if d in (None, "t", "tt"):
+            cosm, sinm = self.cos_m, self.sin_m
+        elif d in ("p", "tp"):
+            cosm, sinm = -m * self.sin_m, m * self.cos_m
+        else:  # 'pp'
+            cosm, sinm = -m * m * self.cos_m, -m * m * self.sin_m
+        g = self._fourier_step(F, cosm, sinm)
+        return g.reshape(g.shape[:-2] + (self.npts,))
+
+    def synth_all(self, coeffs):
+        """Values and first and second derivatives at once: dict with keys '', 't', 'p', 'tt', 'tp', 'pp'."""
+        padded = self.pad(coeffs)
+        m = self._dphi
+        out = {}
+        F0 = self._legendre_step(padded, self.lam)
+        F1 = self._legendre_step(padded, self.dlam)
+        F2 = self._legendre_step(padded, self.d2lam)
+        cs = (self.cos_m, self.sin_m)
+        dcs = (-m * self.sin_m, m * self.cos_m)
+        ddcs = (-m * m * self.cos_m, -m * m * self.sin_m)
+        for key, F, trig in (("", F0, cs), ("p", F0, dcs), ("pp", F0, ddcs),
+                             ("t", F1, cs), ("tp", F1, dcs), ("tt", F2, cs)):
+            g = self._fourier_step(F, *trig)
+            out[key] = g.reshape(g.shape[:-2] + (self.npts,))
+        return out
+
+    # ---------------------------------------------------------------- analysis
+    def analysis(self, values, full=False):
+        """P: q-grid values (..., npts) -> degree-p coefficients (..., C) (or full (p+1)^2).
+
+        Exact inverse of synth on the degree-p space (reduced space when q = p), and the
+        L2 projection onto it for fields of degree <= q.
+        """
+        values = np.asarray(values, dtype=float)
+        g = values.reshape(values.shape[:-1] + (self.nlat, self.nlon))
+        Fc = np.einsum("...ij,mj->...mi", g, self._fourier_analysis_cos, optimize=True)
+        Fs = np.einsum("...ij,mj->...mi", g, self._fourier_analysis_sin, optimize=True)
+        F = np.stack([Fc, Fs], axis=-3) * self.glw          # (..., 2, M, I), Gauss weights in theta
+        padded = np.einsum("...kmi,min->...kmn", F, self.lam, optimize=True)
+        return self.unpad(padded, full=full)
+
+    def synth_transpose(self, values, full=False):
+        """Q^T: the transpose of synth as a linear map, (..., npts) -> (..., C) or (..., (p+1)^2)."""
+        values = np.asarray(values, dtype=float)
+        g = values.reshape(values.shape[:-1] + (self.nlat, self.nlon))
+        Fc = np.einsum("...ij,mj->...mi", g, self.cos_m, optimize=True)
+        Fs = np.einsum("...ij,mj->...mi", g, self.sin_m, optimize=True)
+        F = np.stack([Fc, Fs], axis=-3)
+        padded = np.einsum("...kmi,min->...kmn", F, self.lam, optimize=True)
+        return self.unpad(padded, full=full)
+
+    def integrate(self, values):
+        """Integral over the unit sphere of a q-grid field (..., npts)."""
+        return np.asarray(values) @ self.weights
+
+
+@lru_cache(maxsize=64)
+def transform(p, q=None):
+    """Cached Transform(p, q)."""
+    return Transform(p, p if q is None else q)
+
+
+def resample(coeffs, p_from, p_to):
+    """Coefficients of degree p_from re-expressed at degree p_to (zero-padding or truncation = filter)."""
+    coeffs = np.asarray(coeffs, dtype=float)
+    if p_from == p_to:
+        return coeffs.copy()
+    Tf, Tt = transform(p_from), transform(p_to)
+    padded = Tf.pad(coeffs)
+    pm = min(p_from, p_to)
+    out = np.zeros(coeffs.shape[:-1] + (2, p_to + 1, p_to + 1))
+    out[..., :pm + 1, :pm + 1] = padded[..., :pm + 1, :pm + 1]
+    full = coeffs.shape[-1] == n_full(p_from) and p_to >= p_from
+    return Tt.unpad(out, full=full)
+
+
+def filter_coeffs(coeffs, p, attenuation):
+    """Multiply every coefficient of degree n by attenuation(n) (array of length p+1)."""
+    ns, _, _ = index_tables(p)
+    k = np.asarray(coeffs).shape[-1]
+    return np.asarray(coeffs) * np.asarray(attenuation)[ns[:k]]
+
+
+# ------------------------------------------------------------------------ evaluation anywhere
+def evaluate(coeffs, p, theta, phi):
+    """Values of degree-p fields at arbitrary points (theta, phi): (..., C) -> (..., npoints)."""
+    theta = np.asarray(theta, dtype=float).ravel()
+    phi = np.asarray(phi, dtype=float).ravel()
+    T = transform(p)
+    padded = T.pad(coeffs)
+    lam, _, _ = legendre(p, np.cos(theta))                   # (M, P, N)
+    m = np.arange(p + 1)
+    c = np.where(m == 0, 1.0, SQRT2)[:, None]
+    cosm = c * np.cos(np.outer(m, phi))                      # (M, P)
+    sinm = c * np.sin(np.outer(m, phi))
+    F = np.einsum("...kmn,mPn->...kmP", padded, lam, optimize=True)
+    return np.einsum("...mP,mP->...P", F[..., 0, :, :], cosm) + np.einsum("...mP,mP->...P", F[..., 1, :, :], sinm)
+
+
+# ------------------------------------------------------------------------ rotations
+def rotation_y_points(beta, theta, phi):
+    """Angles of R_y(beta) applied to the unit vectors (theta, phi)."""
+    x = np.sin(theta) * np.cos(phi)
+    y = np.sin(theta) * np.sin(phi)
+    z = np.cos(theta)
+    cb, sb = np.cos(beta), np.sin(beta)
+    xr, zr = cb * x + sb * z, -sb * x + cb * z
+    return np.arccos(np.clip(zr, -1.0, 1.0)), np.arctan2(y, xr)
+
+
+@lru_cache(maxsize=32)
+def wigner_blocks(p, beta):
+    """Rotation of degree-p coefficients by a tilt R_y(beta), per degree n.
+
+    The field g(y) = f(R_y(beta) y) has coefficients D(beta) f, D block diagonal in n.
+    Returns a tuple over n of (index array into the full flat layout, block (2n+1, 2n+1)).
+    Computed by exact projection on the (p+1)-grid, which resolves the full degree-p space.
+    """
+    T = transform(p, p + 1)
+    tt, pp = np.meshgrid(T.theta, T.phi, indexing="ij")
+    tr, pr = rotation_y_points(beta, tt.ravel(), pp.ravel())
+    basis = evaluate(np.eye(n_full(p)), p, tr, pr)           # (K, npts): basis_k(R y)
+    D = T.analysis(basis, full=True).T                       # D[j, k] = <Y_j, Y_k o R>
+    ns, _, _ = index_tables(p)
+    blocks = []
+    for n in range(p + 1):
+        idx = np.nonzero(ns == n)[0]
+        blocks.append((idx, np.ascontiguousarray(D[np.ix_(idx, idx)])))
+    return tuple(blocks)
+
+
+def rotate_z(coeffs, p, alpha):
+    """Coefficients of g(theta, phi) = f(theta, phi + alpha), full layout (..., (p+1)^2).
+
+    alpha may be an array broadcast against the leading axes of coeffs.
+    """
+    coeffs = np.asarray(coeffs, dtype=float)
+    if coeffs.shape[-1] != n_full(p):
+        coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
+    ns, ms, ks = index_tables(p)
+    alpha = np.asarray(alpha, dtype=float)[..., None]
+    out = np.empty_like(coeffs)
+    cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
+    sin_idx = cos_idx + (p + 1 - ms[cos_idx])                 # the sine partner follows the cosine block
+    a, b = coeffs[..., cos_idx], coeffs[..., sin_idx]
+    ca, sa = np.cos(ms[cos_idx] * alpha), np.sin(ms[cos_idx] * alpha)
+    out[..., cos_idx] = a * ca + b * sa
+    out[..., sin_idx] = b * ca - a * sa
+    m0 = np.nonzero(ms == 0)[0]
+    out[..., m0] = coeffs[..., m0]
+    return out
+
+
+def rotate_y(coeffs, p, beta):
+    """Coefficients of g(y) = f(R_y(beta) y) (full layout in and out)."""
+    coeffs = np.asarray(coeffs, dtype=float)
+    if coeffs.shape[-1] != n_full(p):
+        coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
+    out = np.empty_like(coeffs)
+    for idx, block in wigner_blocks(p, float(beta)):
+        out[..., idx] = coeffs[..., idx] @ block.T
+    return out
+
+
+def rotate_to_pole(coeffs, p, theta0, phi0):
+    """Coefficients of g(y) = f(R_z(phi0) R_y(theta0) y): the point (theta0, phi0) moved to the north pole."""
+    return rotate_y(rotate_z(coeffs, p, phi0), p, theta0)
