@@ -1,0 +1,252 @@
+"""sum_j S_j[f] + D_j[g] at the surface points of all vesicles, or at free targets (method reference 5).
+
+Per step (geometry frozen) `LayerPotentials.__init__` does the setup: the self operators,
+the upsampled far-field sources, the near pairs (cell lists), their projections and
+interpolation weights.  `apply` is then called once per GMRES iteration:
+
+    self      S_hat f + D_hat g                  (per-vesicle dense operators, batched GEMM)
+    far       smooth rule over every other vesicle (direct or FMM backend)
+    near      for each near (target, vesicle) pair: minus that pair's smooth rule, plus the
+              near-singular value (line extrapolation through the projection)
+
+Densities and results are degree-p coefficients (N, 3, C).  The double-layer density g is
+scaled by (1 - lambda_j) here; the caller passes the plain velocity.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import sph
+from .._kernels import search, stokes
+from . import near as nearmod
+from .far import FarField
+from .singular import SelfOperators
+
+
+class Settings:
+    """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
+
+    def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8):
+        self.q_self, self.q_far = q_self, q_far
+        self.near_factor, self.backend, self.fmm_eps = near_factor, backend, fmm_eps
+
+
+class LayerPotentials:
+    """Setup once per step for a Surface; apply many times (see module docstring)."""
+
+    def __init__(self, surface, lam=1.0, viscosity=1.0, settings=None, want_double=None, timers=None):
+        s = settings or Settings()
+        p = surface.p
+        self.p, self.N = p, surface.n_vesicles
+        self.q_self = s.q_self or 2 * p
+        self.q_far = s.q_far or 2 * p
+        self.mu = float(viscosity)
+        self.lam = np.broadcast_to(np.asarray(lam, dtype=float), (self.N,)).copy()
+        self.want_double = bool(np.any(self.lam != 1.0)) if want_double is None else bool(want_double)
+        self.settings = s
+        self.surface = surface
+        self.timers = timers
+        with _timed(timers, "self_setup"):
+            self.self_ops = SelfOperators(surface.coeffs, p, self.q_self, True, self.want_double, self.mu)
+        # far-field sources: the upsampled grid with its quadrature weights
+        gq = surface.geometry(self.q_far)
+        self.Tq = sph.transform(p, self.q_far)
+        self.src = np.ascontiguousarray(gq.X.reshape(-1, 3))
+        self.src_w = gq.dA.reshape(-1)
+        self.src_nw = np.ascontiguousarray((gq.normal * gq.dA[..., None]).reshape(-1, 3))
+        mq = self.Tq.npts
+        self.src_id = np.repeat(np.arange(self.N, dtype=np.int64), mq)
+        self.src_off = np.arange(self.N + 1, dtype=np.int64) * mq
+        self.h = nearmod.near_distance(surface.area(), self.q_far, s.near_factor)
+        # own targets: the p-grid
+        self.Tp = sph.transform(p)
+        self.trg = np.ascontiguousarray(surface.points().reshape(-1, 3))
+        self.trg_id = np.repeat(np.arange(self.N, dtype=np.int64), self.Tp.npts)
+        self.far = None
+        self.near = None
+        if self.N > 1:
+            with _timed(timers, "near_setup"):
+                self.near = self._near_setup(self.trg, self.trg_id)
+            self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps)
+
+    # ------------------------------------------------------------------ setup helpers
+    def _near_setup(self, trg, trg_id):
+        """Near pairs, projections, line points and interpolation weights for targets trg."""
+        hmax = float(self.h.max())
+        pairs, _ = search.near_pairs(trg, trg_id, self.src, self.src_id, hmax)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        if len(pairs):
+            keep = np.zeros(len(pairs), dtype=bool)
+            # exact per-vesicle width: min distance from the target to the vesicle's sources
+            nearest = np.empty(len(pairs), dtype=np.int64)
+            for k0 in range(0, len(pairs), 2048):
+                sl = slice(k0, k0 + 2048)
+                t, v = pairs[sl, 0], pairs[sl, 1]
+                pts = self.src.reshape(self.N, -1, 3)[v]                         # (B, Mq, 3)
+                d2 = np.einsum("bmk,bmk->bm", pts - trg[t][:, None], pts - trg[t][:, None])
+                j = d2.argmin(axis=1)
+                nearest[sl] = j
+                keep[sl] = np.sqrt(d2[np.arange(len(j)), j]) < 2.0 * self.h[v]
+            pairs, nearest = pairs[keep], nearest[keep]
+        else:
+            nearest = np.zeros(0, dtype=np.int64)
+        info = {"pairs": np.ascontiguousarray(pairs)}
+        if not len(pairs):
+            return info
+        it, jp = np.divmod(nearest, self.Tq.nlon)
+        proj = nearmod.Projection(self.surface.coeffs, self.p, trg[pairs[:, 0]], pairs[:, 1],
+                                  self.Tq.theta[it], self.Tq.phi[jp])
+        h = self.h[pairs[:, 1]]
+        # targets farther than h from their projection are in the smooth-rule zone already
+        inside_zone = np.abs(proj.signed_distance) < h
+        info["pairs"] = np.ascontiguousarray(pairs[inside_zone])
+        sel = lambda a: a[inside_zone]
+        proj.theta, proj.phi, proj.point, proj.normal = map(sel, (proj.theta, proj.phi, proj.point, proj.normal))
+        proj.signed_distance, proj.converged = sel(proj.signed_distance), sel(proj.converged)
+        info["projection"] = proj
+        side = np.where(proj.signed_distance >= 0, 1.0, -1.0)
+        info["side"] = side
+        oriented = _Oriented(proj, side)
+        pts, _ = nearmod.line_points(oriented, h[inside_zone])
+        info["line_points"] = np.ascontiguousarray(pts.reshape(-1, 3))
+        P = len(info["pairs"])
+        info["line_pairs"] = np.ascontiguousarray(
+            np.stack([np.arange(P * nearmod.L_POINTS), np.repeat(info["pairs"][:, 1], nearmod.L_POINTS)], axis=1))
+        info["weights"] = nearmod.interpolation_weights(oriented, h[inside_zone])
+        info["basis"] = sph.evaluate(np.eye(sph.n_coeffs(self.p)), self.p, proj.theta, proj.phi).T  # (P, C)
+        return info
+
+    # ------------------------------------------------------------------ apply
+    def _densities(self, f, g):
+        """Sources of the smooth rule on the q_far grid: f w / mu and (1 - lambda) g."""
+        fw = np.moveaxis(self.Tq.synth(f), -2, -1).reshape(-1, 3) * (self.src_w / self.mu)[:, None]
+        gq = None
+        if g is not None and self.want_double:
+            gq = np.moveaxis(self.Tq.synth(g * (1.0 - self.lam)[:, None, None]), -2, -1).reshape(-1, 3)
+        return np.ascontiguousarray(fw), (None if gq is None else np.ascontiguousarray(gq))
+
+    def self_part(self, f, g=None):
+        """Coefficients of S_i[f_i] + (1 - lambda_i) pv D_i[g_i] on each vesicle's own surface."""
+        u = SelfOperators.apply(self.self_ops.single, f)
+        if g is not None and self.want_double:
+            u += SelfOperators.apply(self.self_ops.double, g * (1.0 - self.lam)[:, None, None])
+        return u
+
+    def apply(self, f, g=None, parts=None):
+        """Coefficients (N, 3, C) of sum_j S_j[f_j] + D_j[g_j] on every surface (pv for own D)."""
+        parts = parts if parts is not None else {}
+        with _timed(self.timers, "self"):
+            u_self = self.self_part(f, g)
+        if self.N == 1:
+            return u_self
+        fw, gq = self._densities(f, g)
+        with _timed(self.timers, "far"):
+            vals = self.far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
+        with _timed(self.timers, "near"):
+            vals = self._near_correct(vals, self.near, self.trg, fw, gq, u_self, g)
+        vals = vals.reshape(self.N, -1, 3)
+        return u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
+
+    def _near_correct(self, vals, info, trg, fw, gq, u_self, g):
+        """Replace the smooth rule of near pairs by the near-singular value."""
+        if info is None or "projection" not in info:
+            return vals
+        pairs = info["pairs"]
+        smooth = np.zeros((len(pairs), 3))
+        stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, trg, pairs, smooth)
+        line = np.zeros((len(info["line_points"]), 3))
+        stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, info["line_points"], info["line_pairs"], line)
+        if gq is not None:
+            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, trg, pairs, smooth)
+            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["line_points"],
+                                       info["line_pairs"], line)
+        v = pairs[:, 1]
+        # on-surface value at the projection: the self potential of vesicle v, one-sided for D
+        u0 = np.einsum("pc,pkc->pk", info["basis"], u_self[v])
+        if gq is not None:
+            g0 = np.einsum("pc,pkc->pk", info["basis"], g[v]) * (1.0 - self.lam[v])[:, None]
+            u0 -= 0.5 * info["side"][:, None] * g0
+        line = line.reshape(len(pairs), nearmod.L_POINTS, 3)
+        w = info["weights"]
+        nearval = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line)
+        np.add.at(vals, pairs[:, 0], nearval - smooth)
+        return vals
+
+    def evaluate_at(self, targets, f, g=None):
+        """Values at free targets (T, 3) of sum_j S_j[f_j] + D_j[g_j], any distance (off-surface)."""
+        targets = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
+        tid = np.full(len(targets), -1, dtype=np.int64)
+        fw, gq = self._densities(f, g)
+        far = FarField(self.src, self.src_id, targets, tid, backend=self.settings.backend, eps=self.settings.fmm_eps)
+        vals = far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
+        info = self._near_setup(targets, tid)
+        return self._near_correct(vals, info, targets, fw, gq, self.self_part(f, g), g)
+
+    # ------------------------------------------------------------------ error estimate (3.2.4)
+    def error_estimate(self):
+        """Errors of D[1] (lambda = 0 kernel) per regime: self vs 1/2, near and far vs 0."""
+        C = sph.n_coeffs(self.p)
+        if self.self_ops.double is None:
+            dl = SelfOperators(self.surface.coeffs, self.p, self.q_self, False, True).double
+        else:
+            dl = self.self_ops.double
+        one = np.zeros((self.N, 3, C))
+        one[:, :, 0] = np.sqrt(4.0 * np.pi)
+        self_vals = self.Tp.synth(SelfOperators.apply(dl, one))
+        out = {"self": float(np.abs(self_vals - 0.5).max()), "near": 0.0, "far": 0.0}
+        if self.N == 1:
+            return out
+        gq = np.ones((len(self.src), 3))
+        vals = np.zeros((len(self.trg), 3))
+        stokes.stresslet_sum_excl(self.src, self.src_nw, gq, self.src_id, self.trg, self.trg_id, vals)
+        near_t = np.zeros(len(self.trg), dtype=bool)
+        if self.near is not None and "projection" in self.near:
+            info = self.near
+            smooth = np.zeros((len(info["pairs"]), 3))
+            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, self.trg, info["pairs"], smooth)
+            line = np.zeros((len(info["line_points"]), 3))
+            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["line_points"],
+                                       info["line_pairs"], line)
+            u0 = (0.5 - 0.5 * info["side"])[:, None] * np.ones((1, 3))   # outside limit: 0, inside: 1
+            line = line.reshape(len(info["pairs"]), nearmod.L_POINTS, 3)
+            w = info["weights"]
+            np.add.at(vals, info["pairs"][:, 0], w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line) - smooth)
+            near_t[info["pairs"][:, 0]] = True
+        err = np.abs(vals).max(axis=1)
+        out["near"] = float(err[near_t].max()) if near_t.any() else 0.0
+        out["far"] = float(err[~near_t].max()) if (~near_t).any() else 0.0
+        return out
+
+    @property
+    def n_near_pairs(self):
+        return 0 if self.near is None else len(self.near["pairs"])
+
+    def contacts(self):
+        """Near pairs whose target lies on or behind the other surface: (target, vesicle, signed distance)."""
+        if self.near is None or "projection" not in self.near:
+            return np.zeros((0, 2), dtype=np.int64), np.zeros(0)
+        d = self.near["projection"].signed_distance
+        bad = d <= 0
+        return self.near["pairs"][bad], d[bad]
+
+
+class _Oriented:
+    """A projection whose normal points to the target's side (for the line points)."""
+
+    def __init__(self, proj, side):
+        self.point = proj.point
+        self.normal = proj.normal * side[:, None]
+        self.signed_distance = np.abs(proj.signed_distance)
+
+
+class _timed:
+    def __init__(self, timers, name):
+        self.timers, self.name = timers, name
+
+    def __enter__(self):
+        if self.timers is not None:
+            self.timers.start(self.name)
+
+    def __exit__(self, *exc):
+        if self.timers is not None:
+            self.timers.stop(self.name)

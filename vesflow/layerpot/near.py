@@ -1,0 +1,143 @@
+"""Near-singular evaluation (method reference 5.2; paper 3.2.2) and the projection it rests on.
+
+A target x within h_n of another surface is projected on it, x -> Y0 = X(theta*, phi*), by
+Gauss-Newton on |X(theta, phi) - x|^2 with exact spherical-harmonic derivatives and a
+backtracking line search (the paper fits 3x3 quadratic patches; the series itself is
+cheaper to differentiate exactly at O(p^2) per point and needs no patch switching).  The
+layer potential is then evaluated with the smooth rule at L points Y0 + n0 h (1 + l/(L-1)),
+l = 0..L-1, and Lagrange-interpolated, together with the on-surface limit at Y0, to x.
+
+The projection is public: collision detection and repulsion reuse it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import sph
+
+L_POINTS = 8
+
+
+def near_distance(area, q, factor=1.0):
+    """Near-zone width h_n = factor * sqrt(A / q) (paper 3.2.2, A the largest vesicle area)."""
+    return factor * np.sqrt(np.max(area) / q) * np.ones_like(np.asarray(area, dtype=float))
+
+
+def eval_series(coeffs, p, theta, phi, derivs=True):
+    """Values (and theta/phi derivatives) of per-point series coeffs (P, k, C) at (theta, phi) (P,)."""
+    T = sph.transform(p)
+    padded = T.pad(coeffs)                                            # (P, k, 2, M, N)
+    lam, dlam, _ = sph.legendre(p, np.cos(theta))                     # (M, P, N)
+    m = np.arange(p + 1)
+    c = np.where(m == 0, 1.0, sph.SQRT2)
+    cosm = c[:, None] * np.cos(np.outer(m, phi))                      # (M, P)
+    sinm = c[:, None] * np.sin(np.outer(m, phi))
+    def fourier(F, cs, sn):
+        return np.einsum("pkm,mp->pk", F[:, :, 0], cs) + np.einsum("pkm,mp->pk", F[:, :, 1], sn)
+    F0 = np.einsum("pkamn,mpn->pkam", padded, lam, optimize=True)
+    val = fourier(F0, cosm, sinm)
+    if not derivs:
+        return val
+    F1 = np.einsum("pkamn,mpn->pkam", padded, dlam, optimize=True)
+    dt = fourier(F1, cosm, sinm)
+    dp = fourier(F0, -m[:, None] * sinm, m[:, None] * cosm)
+    return val, dt, dp
+
+
+class Projection:
+    """Closest points on surfaces: for targets x (P, 3) and source vesicles v (P,).
+
+    Attributes after construction: theta, phi (P,), point Y0 (P, 3), outward normal (P, 3),
+    signed distance (P,) = (x - Y0) . n0 (negative inside), converged (P,) bool.
+    """
+
+    def __init__(self, coeffs, p, targets, vesicle, start_theta, start_phi, tol=1e-10, max_iter=30):
+        x = np.asarray(targets, dtype=float)
+        cv = np.asarray(coeffs)[vesicle]                              # (P, 3, C)
+        th, ph = np.array(start_theta, dtype=float), np.array(start_phi, dtype=float)
+        Y, Yt, Yp = eval_series(cv, p, th, ph)
+        res = np.einsum("pk,pk->p", Y - x, Y - x)
+        conv = np.zeros(len(x), dtype=bool)
+        for _ in range(max_iter):
+            act = ~conv
+            if not act.any():
+                break
+            r = x[act] - Y[act]
+            a11 = np.einsum("pk,pk->p", Yt[act], Yt[act])
+            a12 = np.einsum("pk,pk->p", Yt[act], Yp[act])
+            a22 = np.einsum("pk,pk->p", Yp[act], Yp[act])
+            b1 = np.einsum("pk,pk->p", Yt[act], r)
+            b2 = np.einsum("pk,pk->p", Yp[act], r)
+            det = a11 * a22 - a12 ** 2
+            dth = (a22 * b1 - a12 * b2) / det
+            dph = (a11 * b2 - a12 * b1) / det
+            step = np.ones(act.sum())
+            idx = np.nonzero(act)[0]
+            best = res[act].copy()
+            newY = Y[act].copy(); newYt = Yt[act].copy(); newYp = Yp[act].copy()
+            nth, nph = th[act].copy(), ph[act].copy()
+            pending = np.ones(len(idx), dtype=bool)
+            for _ls in range(12):                                      # backtracking line search
+                if not pending.any():
+                    break
+                k = np.nonzero(pending)[0]
+                tt, pp = _wrap(th[idx[k]] + step[k] * dth[k], ph[idx[k]] + step[k] * dph[k])
+                y, yt, yp = eval_series(cv[idx[k]], p, tt, pp)
+                rr = np.einsum("pk,pk->p", y - x[idx[k]], y - x[idx[k]])
+                ok = rr <= best[k] * (1.0 + 1e-14)
+                kk = k[ok]
+                newY[kk], newYt[kk], newYp[kk] = y[ok], yt[ok], yp[ok]
+                nth[kk], nph[kk] = tt[ok], pp[ok]
+                best[kk] = rr[ok]
+                pending[kk] = False
+                step[k[~ok]] *= 0.5
+            size = np.abs(step * dth) + np.abs(step * dph)
+            th[idx], ph[idx], Y[idx], Yt[idx], Yp[idx] = nth, nph, newY, newYt, newYp
+            res[idx] = best
+            conv[idx] = (size < tol) | pending
+        n = np.cross(Yt, Yp)
+        n /= np.linalg.norm(n, axis=1)[:, None]
+        self.theta, self.phi, self.point, self.normal = th, ph, Y, n
+        self.signed_distance = np.einsum("pk,pk->p", x - Y, n)
+        self.converged = conv
+
+
+def _wrap(theta, phi):
+    """Keep theta in (0, pi) by crossing a pole: (-t, f) -> (t, f + pi)."""
+    neg = theta < 0
+    theta = np.where(neg, -theta, theta)
+    phi = np.where(neg, phi + np.pi, phi)
+    over = theta > np.pi
+    theta = np.where(over, 2 * np.pi - theta, theta)
+    phi = np.where(over, phi + np.pi, phi)
+    theta = np.clip(theta, 1e-12, np.pi - 1e-12)
+    return theta, np.mod(phi, 2 * np.pi)
+
+
+def lagrange_weights(nodes, x):
+    """Weights w (len(x), len(nodes)) with sum_l w_l f(nodes_l) = interpolant at x."""
+    nodes = np.asarray(nodes, dtype=float)
+    x = np.atleast_1d(np.asarray(x, dtype=float))
+    w = np.ones((len(x), len(nodes)))
+    for j in range(len(nodes)):
+        for k in range(len(nodes)):
+            if k != j:
+                w[:, j] *= (x - nodes[k]) / (nodes[j] - nodes[k])
+    return w
+
+
+def line_points(projection, h):
+    """Interpolation points (P, L, 3) at Y0 + n0 h_n (1 + l/(L-1)) and the node parameters (P, L+1)."""
+    h = np.broadcast_to(np.asarray(h, dtype=float), projection.point.shape[:1])
+    s = 1.0 + np.arange(L_POINTS) / (L_POINTS - 1.0)                   # 1 .. 2
+    pts = projection.point[:, None, :] + projection.normal[:, None, :] * (h[:, None] * s)[..., None]
+    nodes = np.concatenate([np.zeros((len(h), 1)), h[:, None] * s], axis=1)
+    return pts, nodes
+
+
+def interpolation_weights(projection, h):
+    """Lagrange weights (P, L+1) from the nodes (0, h..2h) to the target's distance |d|."""
+    _, nodes = line_points(projection, h)
+    d = np.abs(projection.signed_distance)
+    return np.stack([lagrange_weights(nodes[i] / nodes[i, -1], [d[i] / nodes[i, -1]])[0] for i in range(len(d))]) \
+        if len(d) else np.zeros((0, L_POINTS + 1))

@@ -1,0 +1,130 @@
+"""Self interaction: singular quadrature assembled into per-vesicle operators (method reference 5.1; paper 3.2.1).
+
+For a target t = (theta0, phi0) of the p-grid the surface and the density are rotated so
+that t sits at the north pole, g = f o R_z(phi0) R_y(theta0), evaluated on the q-grid and
+integrated with the Graham-Sloan weights
+
+    Lambda_i = w_i (pi/q) 2 sin(theta_i/2) sum_{n=0..q} P_n(cos theta_i)
+
+applied to the integrand K(X_t, X(y)) f(y) W(y)/sin(theta).  As a linear map of the density
+coefficients the row of target t is R_t^T Q_q^T (Lambda o W o K), assembled through the
+transposed transforms (never forming Q R_t); projecting the rows on the p-grid with P gives
+the Galerkin operator S_hat = P S (3C x 3C per vesicle), applied with one batched GEMM.
+
+Double layer: the lambda = 0 kernel -(3/4pi)(r.n_y) r r^T / r^5 gives the principal value;
+the limits from outside/inside are pv -/+ density/2.
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from scipy.special import eval_legendre
+
+from .. import sph
+
+INV8PI = 1.0 / (8.0 * np.pi)
+DL_COEF = -3.0 / (4.0 * np.pi)
+
+
+@lru_cache(maxsize=16)
+def graham_sloan_weights(q):
+    """Lambda_i on the q-grid (npts,): integrates g / chord exactly for g of degree <= q."""
+    theta, _, w = sph.gauss_grid(q)
+    x = np.cos(theta)
+    legsum = sum(eval_legendre(n, x) for n in range(q + 1))
+    lam = w * (np.pi / q) * 2.0 * np.sin(theta / 2.0) * legsum
+    return np.repeat(lam, 2 * q)
+
+
+@lru_cache(maxsize=16)
+def analysis_matrix(p):
+    """P on the p-grid as a dense matrix (C, M)."""
+    T = sph.transform(p)
+    return np.ascontiguousarray(T.analysis(np.eye(T.npts)).T)
+
+
+def _rotate_back(rows, p, theta0, phi0s):
+    """Apply R_t^T = R_z(phi0)^T R_y(theta0)^T to full-layout rows (..., J, ..., K): J targets on one latitude."""
+    out = np.empty_like(rows)
+    for idx, block in sph.wigner_blocks(p, float(theta0)):
+        out[..., idx] = rows[..., idx] @ block                       # D_y^T acting on row vectors
+    alpha = -np.asarray(phi0s).reshape((-1,) + (1,) * (rows.ndim - 2))
+    return sph.rotate_z(out, p, alpha)                                # D_z(phi0)^T = D_z(-phi0)
+
+
+class SelfOperators:
+    """Per-vesicle Galerkin self operators of degree p with singular quadrature order q.
+
+    S[v] (3C, 3C): coefficients of the density f (component-major: [b, k]) ->
+    coefficients of S_v[f] on vesicle v's own surface.  D[v] likewise for the principal
+    value of the lambda = 0 double layer (only built when want_double).
+    """
+
+    def __init__(self, coeffs, p, q=None, want_single=True, want_double=False, viscosity=1.0):
+        coeffs = np.asarray(coeffs, dtype=float)
+        self.p = p
+        self.q = 2 * p if q is None else q
+        if self.q <= p:
+            raise ValueError(f"singular quadrature order q = {self.q} must exceed p = {p}")
+        C = sph.n_coeffs(p)
+        nves = coeffs.shape[0]
+        self.single = np.zeros((nves, 3 * C, 3 * C)) if want_single else None
+        self.double = np.zeros((nves, 3 * C, 3 * C)) if want_double else None
+        for v in range(nves):
+            S, D = self._assemble(coeffs[v], want_single, want_double)
+            if want_single:
+                self.single[v] = S / viscosity
+            if want_double:
+                self.double[v] = D
+
+    def _assemble(self, X, want_single, want_double):
+        p, q = self.p, self.q
+        Tp, Tq = sph.transform(p), sph.transform(p, q)
+        C, K = sph.n_coeffs(p), sph.n_full(p)
+        Pm = analysis_matrix(p)                                        # (C, M)
+        lam_w = graham_sloan_weights(q) / np.repeat(Tq.sin_theta, Tq.nlon)  # Lambda / sin(theta)
+        Xt_grid = np.moveaxis(Tp.synth(X), 0, -1).reshape(Tp.nlat, Tp.nlon, 3)
+        S_acc = np.zeros((3, C, 3, C)) if want_single else None
+        D_acc = np.zeros((3, C, 3, C)) if want_double else None
+        phis = Tp.phi
+        for i0, theta0 in enumerate(Tp.theta):
+            # rotated surface, one per target on this latitude: (J, 3, K)
+            Xr = sph.rotate_y(sph.rotate_z(np.broadcast_to(X, (len(phis), 3, C)), p, phis[:, None]), p, theta0)
+            d = {key: np.moveaxis(Tq.synth(Xr, key), -2, -1) for key in (None, "t", "p")}  # (J, Mq, 3)
+            cr = np.cross(d["t"], d["p"])
+            W = np.linalg.norm(cr, axis=-1)                            # (J, Mq)
+            wgt = W * lam_w                                            # Lambda W / sin(theta)
+            r = Xt_grid[i0][:, None, :] - d[None]                      # (J, Mq, 3)
+            rr = np.einsum("jyk,jyk->jy", r, r)
+            rinv = 1.0 / np.sqrt(rr)
+            rows = []
+            if want_single:
+                ker = INV8PI * (np.eye(3)[None, :, :, None] * (rinv * wgt)[:, None, None, :]
+                                + np.einsum("jya,jyb->jaby", r, r) * (rinv ** 3 * wgt)[:, None, None, :])
+                rows.append(ker)
+            if want_double:
+                rn = np.einsum("jyk,jyk->jy", r, cr)                    # (r . n) W
+                ker = DL_COEF * np.einsum("jya,jyb->jaby", r, r) * (rn * rinv ** 5 * lam_w)[:, None, None, :]
+                rows.append(ker)
+            for which, ker in zip([w for w in ("S", "D") if {"S": want_single, "D": want_double}[w]], rows):
+                R = Tq.synth_transpose(ker, full=True)                # (J, 3, 3, K)
+                R = _rotate_back(R, p, theta0, phis)[..., :C]          # density in the reduced space
+                # project the target values on the p-grid: acc[a, k', b, k] += P[k', t] R[t, a, b, k]
+                Pcols = Pm[:, i0 * Tp.nlon:(i0 + 1) * Tp.nlon]          # (C, J)
+                contrib = np.einsum("cj,jabk->acbk", Pcols, R, optimize=True)
+                if which == "S":
+                    S_acc += contrib
+                else:
+                    D_acc += contrib
+        S = S_acc.reshape(3 * C, 3 * C) if want_single else None
+        D = D_acc.reshape(3 * C, 3 * C) if want_double else None
+        return S, D
+
+    # ------------------------------------------------------------------ apply
+    @staticmethod
+    def apply(ops, density_coeffs):
+        """Batched GEMM: ops (N, 3C, 3C), density (N, 3, C) -> (N, 3, C)."""
+        N, _, C = density_coeffs.shape
+        out = np.matmul(ops, density_coeffs.reshape(N, 3 * C, 1))
+        return out.reshape(N, 3, C)
