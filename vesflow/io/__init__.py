@@ -1,0 +1,23 @@
+"""HDF5 output of a run: writer, reader, checkpoint and restart.
+
+One file per run, in the layout of ``docs/output.md`` (the contract of
+``shared/INTERFACE.md``).  The writer flushes after every frame, step batch,
+timing update and checkpoint, so a run killed at any moment (even by SIGKILL)
+keeps everything written up to its last flush.
+
+Not rank-aware: call it on rank 0 only, after gathering.
+
+Public names:
+    OutputWriter            create (or reopen for restart) and append to a run file
+    read_output, RunOutput  read frames, steps, attributes, timings
+    iter_frames             one frame at a time (for long runs and the renderer)
+    read_checkpoint         the latest restartable state as a dict
+    STEP_REASONS            codes of the /steps/reason column
+"""
+from .layout import (FORMAT_VERSION, STEP_COLUMNS, STEP_REASONS, TIMING_KEYS, grid_size,
+                     n_coefficients)
+from .reader import RunOutput, frame_fields, iter_frames, read_checkpoint, read_output
+from .writer import OutputWriter
+
+__all__ = ["OutputWriter", "RunOutput", "read_output", "iter_frames", "read_checkpoint", "frame_fields",
+           "STEP_REASONS", "STEP_COLUMNS", "TIMING_KEYS", "grid_size", "n_coefficients", "FORMAT_VERSION"]

@@ -1,0 +1,328 @@
+"""Writing a run file: frames, steps, timings, checkpoint; reopening it for a restart."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from ..errors import SceneError
+from .layout import (FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
+                     TIMING_KEYS, chunks, grid_size, now, time_tol)
+from .reader import _checkpoint_name, _read_tree, read_checkpoint
+
+
+class OutputWriter:
+    """Writes one run file.  Use as a context manager or call close().
+
+    OutputWriter(path, *, scene_text, options_text, version, p, n_vesicles,
+                 periodic_length, restart_of=None, n_coefficients=None)
+    creates (overwrites) the file; ``OutputWriter.reopen(path)`` continues one
+    from its checkpoint.
+    """
+
+    def __init__(self, path, *, scene_text, options_text, version, p, n_vesicles,
+                 periodic_length, restart_of=None, n_coefficients=None, _file=None):
+        self.path = Path(path)
+        self.checkpoint = None  # the state restarted from (reopen only)
+        if _file is not None:  # reopen()
+            self._f = _file
+            self._read_sizes()
+            return
+        p = int(p)
+        n_vesicles = int(n_vesicles)
+        if p < 1 or n_vesicles < 1:
+            raise ValueError(f"OutputWriter: need p >= 1 and n_vesicles >= 1, got p={p}, n_vesicles={n_vesicles}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        # libver v108: dense attribute storage (scene texts > 64 KiB) without the
+        # v110 superblock whose "file open" flag would lock a file left by a killed run.
+        f = h5py.File(self.path, "w", libver=("v108", "latest"))
+        self._f = f
+        self.p, self.n_vesicles = p, n_vesicles
+        self.M = grid_size(p)
+        self.C = int(n_coefficients) if n_coefficients is not None else (p + 1) ** 2 - 1
+        a = f.attrs
+        a["vesflow_version"] = str(version)
+        a["format_version"] = FORMAT_VERSION
+        a["scene"] = str(scene_text or "")
+        a["options"] = str(options_text or "")
+        a["p"] = p
+        a["n_vesicles"] = n_vesicles
+        a["periodic_length"] = float(periodic_length or 0.0)
+        a["n_grid_points"] = self.M
+        a["n_coefficients"] = self.C
+        a["grid"] = ("p-grid: nlat = p+1 Gauss-Legendre latitudes, cos(theta) descending (north first), "
+                     "nlon = 2p longitudes phi_j = pi j / p, point index k = i * nlon + j")
+        a["created"] = now()
+        restarts = []
+        a["restart_of"] = "" if restart_of is None else str(restart_of)
+        if restart_of is not None:
+            try:
+                restarts.append(float(read_checkpoint(restart_of)["time"]))
+            except Exception:  # the source may be gone: the path is still recorded
+                pass
+        a["restarts"] = np.asarray(restarts, dtype=float)
+        a["restart_options"] = np.asarray([""] * len(restarts), dtype=h5py.string_dtype())
+
+        fr = f.create_group("frames")
+        for name, (shape_fn, desc, units, comp) in FRAME_FIELDS.items():
+            self._create_frame_dataset(fr, name, shape_fn(n_vesicles, self.M, self.C), desc, units, comp)
+        st = f.create_group("steps")
+        for name, (dtype, desc) in STEP_COLUMNS.items():
+            d = st.create_dataset(name, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(4096,))
+            d.attrs["description"] = desc
+        st["reason"].attrs["reason_table"] = json.dumps(
+            {str(c): {"name": n, "meaning": m} for c, (n, m) in STEP_REASONS.items()})
+        st.attrs["reason_table"] = st["reason"].attrs["reason_table"]
+        tg = f.create_group("timings")
+        for k in TIMING_KEYS:
+            tg.attrs[k] = 0.0
+        tg.attrs["units"] = "seconds (wall clock)"
+        self.n_frames = 0
+        self.n_steps = 0
+        f.flush()
+
+    # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _create_frame_dataset(group, name, shape, desc, units, compressed, fill=None):
+        kw = dict(compression="gzip", compression_opts=4, shuffle=True) if compressed else {}
+        if fill is not None:
+            kw["fillvalue"] = fill
+        d = group.create_dataset(name, shape=(0,) + tuple(shape), maxshape=(None,) + tuple(shape),
+                                 dtype="f8", chunks=chunks(shape, compressed), **kw)
+        d.attrs["description"] = desc
+        d.attrs["units"] = units
+        return d
+
+    def _read_sizes(self):
+        a = self._f.attrs
+        self.p = int(a["p"])
+        self.n_vesicles = int(a["n_vesicles"])
+        self.M = int(a.get("n_grid_points", grid_size(self.p)))
+        self.C = int(a.get("n_coefficients", (self.p + 1) ** 2 - 1))
+        self.n_frames = int(self._f["frames/time"].shape[0])
+        self.n_steps = int(self._f["steps/time"].shape[0])
+
+    def _check(self, name, arr, shape):
+        a = np.asarray(arr, dtype=np.float64)
+        if a.shape != tuple(shape):
+            raise ValueError(f"write_frame: {name} has shape {a.shape}, expected {tuple(shape)} "
+                             f"(N={self.n_vesicles}, M={self.M}, C={self.C})")
+        return a
+
+    # ------------------------------------------------------------------ writing
+    def write_frame(self, time, points, coefficients, tension, area, volume, centroid,
+                    bending_energy, velocity=None, poles=None):
+        """Append one frame and flush.  Shapes: points (N, M, 3), coefficients (N, 3, C),
+        tension (N, M), area/volume/bending_energy (N,), centroid (N, 3), velocity
+        (N, M, 3) optional, poles (N, 2, 3) optional (north, south).  Returns the frame index."""
+        N, M, C = self.n_vesicles, self.M, self.C
+        values = {"time": np.float64(time)}
+        given = dict(points=points, coefficients=coefficients, tension=tension, area=area, volume=volume,
+                     centroid=centroid, bending_energy=bending_energy)
+        for name, arr in given.items():
+            values[name] = self._check(name, arr, FRAME_FIELDS[name][0](N, M, C))
+        optional = {}
+        for name, arr in (("velocity", velocity), ("poles", poles)):
+            if arr is not None:
+                optional[name] = self._check(name, arr, OPTIONAL_FIELDS[name][0](N, M, C))
+        fr = self._f["frames"]
+        k = self.n_frames
+        for name, v in values.items():
+            d = fr[name]
+            d.resize(k + 1, axis=0)
+            d[k] = v
+        for name, (shape_fn, desc, units, comp) in OPTIONAL_FIELDS.items():
+            if name not in fr and name not in optional:
+                continue
+            if name not in fr:  # first time: earlier frames read back as NaN
+                self._create_frame_dataset(fr, name, shape_fn(N, M, C), desc, units, comp, fill=np.nan)
+            d = fr[name]
+            d.resize(k + 1, axis=0)
+            if name in optional:
+                d[k] = optional[name]
+            else:
+                d[k] = np.nan
+        self.n_frames = k + 1
+        self._f.flush()
+        return k
+
+    def write_steps(self, rows):
+        """Append attempted steps and flush.  rows: a sequence of mappings (keys of
+        STEP_COLUMNS), or of tuples in the order time, dt, accepted, ksp_its,
+        error_estimate, reason, or one mapping of equal-length columns.  reason is a
+        code or a name of STEP_REASONS; missing columns: accepted=1, ksp_its=0,
+        error_estimate=NaN, reason=accepted if accepted else other."""
+        names = list(STEP_COLUMNS)
+        if isinstance(rows, dict):
+            cols = {k: np.atleast_1d(np.asarray(v)) for k, v in rows.items()}
+            n = len(cols.get("time", []))
+            if any(len(v) != n for v in cols.values()):
+                raise ValueError("write_steps: columns of different lengths")
+        else:
+            rows = list(rows)
+            n = len(rows)
+            cols = {k: [] for k in names}
+            for r in rows:
+                if isinstance(r, dict):
+                    unknown = set(r) - set(names)
+                    if unknown:
+                        raise ValueError(f"write_steps: unknown column(s) {sorted(unknown)}; known: {names}")
+                    for k in names:
+                        cols[k].append(r.get(k))
+                else:
+                    r = tuple(r)
+                    if not 2 <= len(r) <= len(names):
+                        raise ValueError(f"write_steps: a row has {len(r)} values, expected 2..{len(names)}")
+                    for i, k in enumerate(names):
+                        cols[k].append(r[i] if i < len(r) else None)
+        if n == 0:
+            return
+        if "time" not in cols or "dt" not in cols or any(v is None for v in cols["time"]) \
+                or any(v is None for v in cols["dt"]):
+            raise ValueError("write_steps: every row needs time and dt")
+        time = np.asarray(cols["time"], dtype="f8")
+        dt = np.asarray(cols["dt"], dtype="f8")
+        acc = [1 if v is None else int(bool(v)) for v in cols.get("accepted", [None] * n)]
+        its = [0 if v is None else int(v) for v in cols.get("ksp_its", [None] * n)]
+        err = [np.nan if v is None else float(v) for v in cols.get("error_estimate", [None] * n)]
+        reason = []
+        for a, v in zip(acc, cols.get("reason", [None] * n)):
+            if v is None:
+                reason.append(0 if a else -1)
+            elif isinstance(v, (str, bytes)):
+                name = v.decode() if isinstance(v, bytes) else v
+                if name not in REASON_CODE:
+                    raise ValueError(f"write_steps: unknown reason {name!r}; known: {sorted(REASON_CODE)}")
+                reason.append(REASON_CODE[name])
+            else:
+                if int(v) not in STEP_REASONS:
+                    raise ValueError(f"write_steps: unknown reason code {v!r}; known: {sorted(STEP_REASONS)}")
+                reason.append(int(v))
+        data = dict(time=time, dt=dt, accepted=np.asarray(acc, "i1"), ksp_its=np.asarray(its, "i4"),
+                    error_estimate=np.asarray(err, "f8"), reason=np.asarray(reason, "i1"))
+        st = self._f["steps"]
+        k = self.n_steps
+        for name in names:
+            d = st[name]
+            d.resize(k + n, axis=0)
+            d[k:k + n] = data[name]
+        self.n_steps = k + n
+        self._f.flush()
+
+    def write_timings(self, timings):
+        """Set /timings attributes (seconds) from a dict; known keys: setup, self, near,
+        far, repar, other, total; other keys are stored as well."""
+        tg = self._f["timings"]
+        for k, v in dict(timings).items():
+            tg.attrs[str(k)] = float(v)
+        self._f.flush()
+
+    def write_checkpoint(self, state):
+        """Replace /checkpoint by `state` (a dict with at least "time"): arrays become
+        datasets, scalars and strings attributes, nested dicts groups, None an empty
+        attribute.  Written to /checkpoint_new first, then swapped in."""
+        if "time" not in state:
+            raise ValueError("write_checkpoint: the state needs a 'time' entry")
+        f = self._f
+        if "checkpoint_new" in f:
+            del f["checkpoint_new"]
+        g = f.create_group("checkpoint_new")
+        _write_tree(g, state)
+        g.attrs["_vesflow_n_frames"] = self.n_frames
+        g.attrs["_vesflow_n_steps"] = self.n_steps
+        g.attrs["_vesflow_written"] = now()
+        g.attrs["_vesflow_complete"] = 1  # last: a group without it is never used
+        f.flush()
+        if "checkpoint" in f:
+            del f["checkpoint"]
+        f.move("checkpoint_new", "checkpoint")
+        f.flush()
+
+    # ------------------------------------------------------------------ restart
+    @classmethod
+    def reopen(cls, path, *, options_text=None):
+        """Open an existing run file to continue it from its checkpoint: frames with
+        time > t_checkpoint and steps that start at or after t_checkpoint are removed,
+        t_checkpoint is appended to the root attribute `restarts` (and options_text,
+        or "", to `restart_options`).  Returns the writer; the checkpoint state (a dict,
+        as read_checkpoint returns it) is its attribute `checkpoint`."""
+        path = Path(path)
+        if not path.exists():
+            raise SceneError(f"--restart {path}: no such file")
+        try:
+            f = h5py.File(path, "r+")
+        except OSError as e:
+            raise SceneError(f"--restart {path}: cannot open it as an HDF5 file ({e})") from None
+        try:
+            name = _checkpoint_name(f)
+            if name is None:
+                raise SceneError(f"--restart {path}: the file has no complete /checkpoint to restart from")
+            if name != "checkpoint":  # killed between delete and move: finish the move
+                if "checkpoint" in f:
+                    del f["checkpoint"]
+                f.move(name, "checkpoint")
+            elif "checkpoint_new" in f:  # an unfinished newer checkpoint
+                del f["checkpoint_new"]
+            state = _read_tree(f["checkpoint"])
+            tc = float(state["time"])
+            tol = time_tol(tc)
+            ft = f["frames/time"][...]
+            keep_f = int(np.argmax(ft > tc + tol)) if np.any(ft > tc + tol) else len(ft)
+            for d in f["frames"].values():
+                d.resize(keep_f, axis=0)
+            stt = f["steps/time"][...]
+            keep_s = int(np.argmax(stt >= tc - tol)) if np.any(stt >= tc - tol) else len(stt)
+            for d in f["steps"].values():
+                d.resize(keep_s, axis=0)
+            a = f.attrs
+            a["restarts"] = np.append(np.asarray(a.get("restarts", []), dtype=float), tc)
+            old = [s.decode() if isinstance(s, bytes) else str(s) for s in a.get("restart_options", [])]
+            a["restart_options"] = np.asarray(old + [str(options_text or "")], dtype=h5py.string_dtype())
+            f.flush()
+        except BaseException:
+            f.close()
+            raise
+        w = cls(path, scene_text=None, options_text=None, version=None, p=None, n_vesicles=None,
+                periodic_length=None, _file=f)
+        w.checkpoint = state
+        return w
+
+    # ------------------------------------------------------------------ closing
+    def flush(self):
+        self._f.flush()
+
+    def close(self):
+        if self._f is not None and self._f.id.valid:
+            self._f.flush()
+            self._f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _write_tree(g, state):
+    for key, v in state.items():
+        key = str(key)
+        if isinstance(v, dict):
+            _write_tree(g.create_group(key), v)
+        elif v is None:
+            g.attrs[key] = h5py.Empty("f8")
+        elif isinstance(v, (str, bytes)):
+            g.attrs[key] = v
+        elif isinstance(v, (bool, int, float, complex, np.generic)) or (
+                isinstance(v, np.ndarray) and v.ndim == 0):
+            g.attrs[key] = v
+        else:
+            a = np.asarray(v)
+            if a.dtype.kind == "U":
+                d = g.create_dataset(key, data=a.astype(object), dtype=h5py.string_dtype())
+                d.attrs["vesflow_kind"] = "str"
+            elif a.dtype.kind == "O":
+                raise TypeError(f"write_checkpoint: cannot store {key!r} of type {type(v).__name__}")
+            else:
+                g.create_dataset(key, data=a)
