@@ -1,0 +1,262 @@
+"""Compiled kernels (vesflow/_kernels) and far-field backends (vesflow/layerpot/far.py).
+
+Kernels of the method reference, section 4 (mu = 1, r = x - y):
+  Stokeslet  S f = (1/(8 pi)) (f/r + r (r.f)/r^3)
+  stresslet  D g = -(3/(4 pi)) (r.nw)(r.g) r / r^5
+"""
+import numpy as np
+import pytest
+
+from vesflow._kernels import search, stokes
+from vesflow.errors import SceneError
+from vesflow.layerpot import far
+
+RTOL = 1e-13
+
+
+# ----------------------------------------------------------------------------- references
+def ref_stokeslet(src, f, trg, mask=None):
+    r = trg[:, None, :] - src[None, :, :]
+    rr = np.einsum("tsk,tsk->ts", r, r)
+    keep = rr > 0 if mask is None else (rr > 0) & mask
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ri = np.where(keep, 1.0 / np.sqrt(rr), 0.0)
+    rf = np.einsum("tsk,sk->ts", r, f)
+    return (f[None] * ri[..., None] + r * (rf * ri**3)[..., None]).sum(1) / (8 * np.pi)
+
+
+def ref_stresslet(src, nw, g, trg, mask=None):
+    r = trg[:, None, :] - src[None, :, :]
+    rr = np.einsum("tsk,tsk->ts", r, r)
+    keep = rr > 0 if mask is None else (rr > 0) & mask
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ri = np.where(keep, 1.0 / np.sqrt(rr), 0.0)
+    c = np.einsum("tsk,sk->ts", r, nw) * np.einsum("tsk,sk->ts", r, g) * ri**5
+    return -3.0 / (4 * np.pi) * (r * c[..., None]).sum(1)
+
+
+def relerr(a, b):
+    return np.abs(a - b).max() / np.abs(b).max()
+
+
+def sphere_grid(q, radius=1.0, centre=(0.0, 0.0, 0.0)):
+    """q-grid of docs/conventions.md on a sphere: points, outward normals, area weights."""
+    x, w = np.polynomial.legendre.leggauss(q + 1)
+    order = np.argsort(-x)
+    x, w = x[order], w[order]
+    th, ph = np.meshgrid(np.arccos(x), np.pi * np.arange(2 * q) / q, indexing="ij")
+    n = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+    wts = np.repeat(w * np.pi / q, 2 * q) * radius**2     # W / sin(theta) = radius^2
+    return np.asarray(centre) + radius * n, n, wts
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(20240611)
+
+
+@pytest.fixture
+def cloud(rng):
+    src = rng.uniform(-1, 1, (400, 3))
+    trg = rng.uniform(-1.5, 1.5, (250, 3))
+    trg[7] = src[11]                       # an exact coincidence: skipped (r == 0)
+    return src, trg
+
+
+# ----------------------------------------------------------------------------- plain sums
+def test_stokeslet_sum_matches_numpy(rng, cloud):
+    src, trg = cloud
+    f = rng.standard_normal(src.shape)
+    out = np.zeros_like(trg)
+    stokes.stokeslet_sum(src, f, trg, out)
+    assert np.all(np.isfinite(out))
+    assert relerr(out, ref_stokeslet(src, f, trg)) < RTOL
+    # accumulates into out
+    stokes.stokeslet_sum(src, f, trg, out)
+    assert relerr(out, 2 * ref_stokeslet(src, f, trg)) < RTOL
+
+
+def test_stresslet_sum_matches_numpy(rng, cloud):
+    src, trg = cloud
+    nw, g = rng.standard_normal(src.shape), rng.standard_normal(src.shape)
+    out = np.ones_like(trg)
+    stokes.stresslet_sum(src, nw, g, trg, out)
+    assert np.all(np.isfinite(out))
+    assert relerr(out - 1.0, ref_stresslet(src, nw, g, trg)) < RTOL
+
+
+def test_shape_errors(rng):
+    a = np.zeros((5, 3))
+    with pytest.raises(ValueError):
+        stokes.stokeslet_sum(a, np.zeros((4, 3)), a, a.copy())
+    with pytest.raises(ValueError):
+        stokes.stokeslet_sum(np.zeros((5, 2)), np.zeros((5, 2)), a, a.copy())
+    out = np.zeros((0, 3))
+    stokes.stokeslet_sum(np.zeros((0, 3)), np.zeros((0, 3)), out, out)   # empty is fine
+
+
+# ----------------------------------------------------------------------------- exclusion and pairs
+def test_excl_variants(rng, cloud):
+    src, trg = cloud
+    src_id = rng.integers(0, 6, src.shape[0])
+    trg_id = rng.integers(-1, 6, trg.shape[0])         # -1: a free target, nothing excluded
+    f, nw, g = (rng.standard_normal(src.shape) for _ in range(3))
+    mask = trg_id[:, None] != src_id[None, :]
+    out = np.zeros_like(trg)
+    stokes.stokeslet_sum_excl(src, f, src_id, trg, trg_id, out)
+    assert relerr(out, ref_stokeslet(src, f, trg, mask)) < RTOL
+    out = np.zeros_like(trg)
+    stokes.stresslet_sum_excl(src, nw, g, src_id, trg, trg_id, out)
+    assert relerr(out, ref_stresslet(src, nw, g, trg, mask)) < RTOL
+
+
+def test_pairs_variants(rng, cloud):
+    src, trg = cloud
+    sizes = np.array([50, 0, 120, 80, 150])            # an empty vesicle too
+    off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    f, nw, g = (rng.standard_normal(src.shape) for _ in range(3))
+    pairs = np.stack([rng.integers(0, trg.shape[0], 300), rng.integers(0, sizes.size, 300)], 1)
+    pairs[0] = [7, 0]                                  # trg[7] == src[11], in vesicle 0
+    out_s = np.zeros((pairs.shape[0], 3))
+    out_d = np.zeros((pairs.shape[0], 3))
+    stokes.stokeslet_sum_pairs(src, f, off, trg, pairs, out_s)
+    stokes.stresslet_sum_pairs(src, nw, g, off, trg, pairs, out_d)
+    ref_s = np.zeros_like(out_s)
+    ref_d = np.zeros_like(out_d)
+    for k, (t, v) in enumerate(pairs):
+        sl = slice(off[v], off[v + 1])
+        ref_s[k] = ref_stokeslet(src[sl], f[sl], trg[t:t + 1])[0]
+        ref_d[k] = ref_stresslet(src[sl], nw[sl], g[sl], trg[t:t + 1])[0]
+    assert np.all(out_s[pairs[:, 1] == 1] == 0.0)
+    assert relerr(out_s, ref_s) < RTOL
+    assert relerr(out_d, ref_d) < RTOL
+    with pytest.raises(IndexError):
+        stokes.stokeslet_sum_pairs(src, f, off, trg, np.array([[0, 5]]), np.zeros((1, 3)))
+
+
+# ----------------------------------------------------------------------------- near search
+def brute_near(trg, trg_id, src, src_id, h):
+    d = np.sqrt(((trg[:, None, :] - src[None, :, :]) ** 2).sum(-1))
+    res = {}
+    for t, s in zip(*np.nonzero((d <= h) & (trg_id[:, None] != src_id[None, :]))):
+        key = (int(t), int(src_id[s]))
+        res[key] = min(res.get(key, np.inf), d[t, s])
+    keys = sorted(res)
+    return np.array(keys, dtype=np.int64).reshape(-1, 2), np.array([res[k] for k in keys])
+
+
+@pytest.mark.parametrize("h", [0.05, 0.3, 2.0])
+def test_near_pairs_matches_brute_force(rng, h):
+    # 12 "vesicles": noisy spheres of radius 0.5 with centres in a 3-box, some touching
+    centres = rng.uniform(0, 3, (12, 3))
+    pts, _, _ = sphere_grid(8, 0.5)
+    src = (centres[:, None, :] + pts[None] + 0.01 * rng.standard_normal((12,) + pts.shape)).reshape(-1, 3)
+    src_id = np.repeat(np.arange(12) * 7 - 20, pts.shape[0])     # arbitrary ids, negative too
+    trg = np.concatenate([src[::5] + 0.02 * rng.standard_normal(src[::5].shape),
+                          rng.uniform(-1, 4, (200, 3)), [[1e3, 0.0, 0.0]]])
+    trg_id = np.concatenate([src_id[::5], np.full(201, 999)])
+    pairs, dist = search.near_pairs(trg, trg_id, src, src_id, h)
+    ref_pairs, ref_dist = brute_near(trg, trg_id, src, src_id, h)
+    assert pairs.dtype == np.int64 and dist.dtype == np.float64
+    assert pairs.shape[0] > 0
+    np.testing.assert_array_equal(pairs, ref_pairs)
+    np.testing.assert_allclose(dist, ref_dist, rtol=1e-15, atol=0)
+
+
+def test_near_pairs_sparse_domain(rng):
+    # two clusters 1e7 apart with h = 1e-2: a dense grid over the box would have 1e27 cells
+    a = rng.uniform(0, 0.1, (300, 3))
+    src = np.concatenate([a, a + 1e7])
+    src_id = np.repeat([0, 1, 2, 3], 150)
+    trg = src + 1e-3
+    trg_id = src_id.copy()
+    pairs, dist = search.near_pairs(trg, trg_id, src, src_id, 1e-2)
+    ref_pairs, ref_dist = brute_near(trg, trg_id, src, src_id, 1e-2)
+    np.testing.assert_array_equal(pairs, ref_pairs)
+    np.testing.assert_allclose(dist, ref_dist, rtol=1e-12)
+    empty, d = search.near_pairs(trg[:0], trg_id[:0], src, src_id, 0.1)
+    assert empty.shape == (0, 2) and d.shape == (0,)
+    with pytest.raises(ValueError):
+        search.near_pairs(trg, trg_id, src, src_id, 0.0)
+
+
+def test_coincident_sources():
+    src = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]])
+    off = np.array([0, 2, 4])
+    trg = np.array([[1 + 1e-14, 0, 0], [1 + 1e-14, 0, 0], [2.5, 0, 0], [3, 0, 0]])
+    vi = np.array([0, 1, 1, -1])
+    np.testing.assert_array_equal(search.coincident_sources(src, off, trg, vi, 1e-12), [1, -1, -1, -1])
+
+
+# ----------------------------------------------------------------------------- normalizations
+def test_stokeslet_normalization_rigid_sphere():
+    """Uniform traction f0 on a sphere of radius a: u = 2 a f0 / 3 inside (rigid translation)."""
+    a, c = 1.7, np.array([0.3, -0.2, 0.5])
+    pts, _, w = sphere_grid(24, a, c)
+    f0 = np.array([0.4, -1.1, 2.0])
+    trg = np.array([c, c + 0.35 * a * np.array([0.6, 0.0, 0.8])])
+    out = np.zeros((2, 3))
+    stokes.stokeslet_sum(pts, f0 * w[:, None], trg, out)
+    expect = 2 * a * f0 / 3
+    assert np.abs(out[0] - expect).max() < 1e-13 * np.abs(expect).max()   # degree-2 integrand: exact
+    assert np.abs(out[1] - expect).max() < 1e-10 * np.abs(expect).max()   # smooth: spectral
+
+
+def test_stresslet_normalization_double_layer_identity():
+    """D[e_k](x) = e_k inside, 0 outside (lambda = 0 kernel, section 4 / eq. 3.10)."""
+    a, c = 1.3, np.array([1.0, 2.0, -0.5])
+    pts, n, w = sphere_grid(32, a, c)
+    trg = np.array([c + 0.3 * a * np.array([0.0, 0.6, -0.8]), c + 4.0 * a * np.array([1.0, 0.0, 0.0])])
+    for k in range(3):
+        g = np.zeros_like(pts)
+        g[:, k] = 1.0
+        out = np.zeros((2, 3))
+        stokes.stresslet_sum(pts, n * w[:, None], g, trg, out)
+        np.testing.assert_allclose(out[0], np.eye(3)[k], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(out[1], 0.0, rtol=0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- far field
+def spheres_scene(rng, nves=4, p=8, q=16):
+    centres = 2.6 * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0.9]])[:nves] + rng.uniform(-0.1, 0.1, (nves, 3))
+    tp, _, _ = sphere_grid(p)
+    sp, sn, sw = sphere_grid(q)
+    # equator targets coincide with q-grid sources up to rounding: nudge them by 1e-15
+    trg = (centres[:, None] + tp[None]).reshape(-1, 3) + 1e-15 * rng.standard_normal((nves * tp.shape[0], 3))
+    src = (centres[:, None] + sp[None]).reshape(-1, 3)
+    trg_id = np.repeat(np.arange(nves), tp.shape[0])
+    src_id = np.repeat(np.arange(nves), sp.shape[0])
+    w = np.tile(sw, nves)[:, None]
+    return src, src_id, trg, trg_id, rng.standard_normal(src.shape) * w, np.tile(sn, (nves, 1)) * w, \
+        rng.standard_normal(src.shape)
+
+
+def test_far_direct_excludes_self(rng):
+    src, src_id, trg, trg_id, f_w, nw, g = spheres_scene(rng, nves=3, p=4, q=6)
+    mask = trg_id[:, None] != src_id[None, :]
+    u = far.far_single_layer(src, f_w, src_id, trg, trg_id, backend="direct")
+    assert relerr(u, ref_stokeslet(src, f_w, trg, mask)) < RTOL
+    u = far.far_double_layer(src, nw, g, src_id, trg, trg_id, backend="direct")
+    assert relerr(u, ref_stresslet(src, nw, g, trg, mask)) < RTOL
+
+
+@pytest.mark.skipif(not far._have_fmm(), reason="fmm3dpy not installed")
+def test_far_fmm_matches_direct(rng):
+    src, src_id, trg, trg_id, f_w, nw, g = spheres_scene(rng)
+    perm = rng.permutation(src.shape[0])                      # sources need not be grouped
+    src, src_id, f_w, nw, g = src[perm], src_id[perm], f_w[perm], nw[perm], g[perm]
+    direct = far.FarField(src, src_id, trg, trg_id, backend="direct")
+    fmm = far.FarField(src, src_id, trg, trg_id, backend="fmm", eps=far.DEFAULT_EPS)
+    assert fmm.n_snapped > 0                                   # the equator targets
+    for dens in (dict(f_w=f_w), dict(nw=nw, g=g), dict(f_w=f_w, nw=nw, g=g)):
+        ref = direct.evaluate(**dens)
+        assert relerr(fmm.evaluate(**dens), ref) < far.DEFAULT_EPS
+
+
+def test_backend_choice():
+    assert far.choose_backend(100, 100, "auto") == "direct"
+    assert far.choose_backend(10, 10, "direct") == "direct"
+    with pytest.raises(SceneError):
+        far.choose_backend(10, 10, "treecode")
+    with pytest.raises(SceneError):
+        far.FarField(np.zeros((1, 3)), [0], np.zeros((1, 3)), [0], backend="direct", eps=0.0)

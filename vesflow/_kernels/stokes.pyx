@@ -1,0 +1,289 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Direct Stokes layer-potential sums, source points -> target points (method reference, section 4).
+
+All kernels use mu = 1 (the caller scales by 1/mu) and ``r = x - y`` (target minus source):
+
+* Stokeslet (single layer, 2.8)::
+
+      S(x, y) f = (1/(8 pi)) (f / r + r (r . f) / r^3)
+
+* Stresslet, the lambda = 0 double-layer kernel (2.9)::
+
+      D(x, y) g = -(3/(4 pi)) (r . n_y) (r . g) r / r^5
+
+  The caller multiplies the density by ``(1 - lambda_j)`` of its source vesicle.
+
+Sources carry their quadrature weight (``f_k w_k``, ``n_k w_k``; docs/conventions.md), so
+every sum is a plain sum over source points.  Every function ACCUMULATES into ``out``
+(``out += ...``): pass zeros for a plain evaluation.  Pairs at distance exactly 0 are
+skipped (the exact-zero test, never a tolerance: the quadrature rules that call these
+kernels rely on it).  The GIL is released and the loop over targets (or pairs) is an
+OpenMP ``prange``; the number of threads follows ``OMP_NUM_THREADS``.
+
+Arrays: points and vectors are C-contiguous ``(n, 3)`` float64; group ids, offsets and
+pair lists are int64 (``long`` on Linux).  Group ("vesicle") ids are arbitrary integers;
+only equality matters.
+"""
+from cython.parallel cimport prange
+from libc.math cimport sqrt, M_PI
+cimport openmp
+
+cdef double INV8PI = 1.0 / (8.0 * M_PI)      # Stokeslet prefactor 1 / (8 pi mu), mu = 1
+cdef double M3_4PI = -3.0 / (4.0 * M_PI)     # stresslet prefactor -3 / (4 pi)
+
+
+# ---------------------------------------------------------------------------------------
+# one target against a contiguous range of sources [s0, s1), optional group exclusion
+# ---------------------------------------------------------------------------------------
+cdef inline void _stokeslet_range(const double* src, const double* f,
+                                  Py_ssize_t s0, Py_ssize_t s1,
+                                  const long* src_id, long excl,
+                                  const double* x, double* o) noexcept nogil:
+    """o[0:3] += sum_{s0 <= s < s1, src_id[s] != excl} S(x, src_s) f_s  (src_id NULL: no exclusion)."""
+    cdef Py_ssize_t s
+    cdef double r0, r1, r2, rr, ri, rf
+    cdef double a0 = 0.0, a1 = 0.0, a2 = 0.0
+    cdef double x0 = x[0], x1 = x[1], x2 = x[2]
+    for s in range(s0, s1):
+        if src_id != NULL and src_id[s] == excl:
+            continue
+        r0 = x0 - src[3 * s]
+        r1 = x1 - src[3 * s + 1]
+        r2 = x2 - src[3 * s + 2]
+        rr = r0 * r0 + r1 * r1 + r2 * r2
+        if rr == 0.0:
+            continue
+        ri = 1.0 / sqrt(rr)
+        rf = (r0 * f[3 * s] + r1 * f[3 * s + 1] + r2 * f[3 * s + 2]) * (ri * ri * ri)
+        a0 = a0 + f[3 * s] * ri + r0 * rf
+        a1 = a1 + f[3 * s + 1] * ri + r1 * rf
+        a2 = a2 + f[3 * s + 2] * ri + r2 * rf
+    o[0] += a0 * INV8PI
+    o[1] += a1 * INV8PI
+    o[2] += a2 * INV8PI
+
+
+cdef inline void _stresslet_range(const double* src, const double* nw, const double* g,
+                                  Py_ssize_t s0, Py_ssize_t s1,
+                                  const long* src_id, long excl,
+                                  const double* x, double* o) noexcept nogil:
+    """o[0:3] += sum_{s0 <= s < s1, src_id[s] != excl} D(x, src_s) g_s  (src_id NULL: no exclusion)."""
+    cdef Py_ssize_t s
+    cdef double r0, r1, r2, rr, ri, ri2, c
+    cdef double a0 = 0.0, a1 = 0.0, a2 = 0.0
+    cdef double x0 = x[0], x1 = x[1], x2 = x[2]
+    for s in range(s0, s1):
+        if src_id != NULL and src_id[s] == excl:
+            continue
+        r0 = x0 - src[3 * s]
+        r1 = x1 - src[3 * s + 1]
+        r2 = x2 - src[3 * s + 2]
+        rr = r0 * r0 + r1 * r1 + r2 * r2
+        if rr == 0.0:
+            continue
+        ri = 1.0 / sqrt(rr)
+        ri2 = ri * ri
+        # (r.n)(r.g) / r^5
+        c = ((r0 * nw[3 * s] + r1 * nw[3 * s + 1] + r2 * nw[3 * s + 2])
+             * (r0 * g[3 * s] + r1 * g[3 * s + 1] + r2 * g[3 * s + 2])) * (ri2 * ri2 * ri)
+        a0 = a0 + c * r0
+        a1 = a1 + c * r1
+        a2 = a2 + c * r2
+    o[0] += a0 * M3_4PI
+    o[1] += a1 * M3_4PI
+    o[2] += a2 * M3_4PI
+
+
+cdef inline const double* _p2(const double[:, ::1] a) noexcept:
+    """Data pointer of an (n, 3) array (NULL when empty: never dereferenced then)."""
+    return &a[0, 0] if a.shape[0] > 0 else NULL
+
+
+cdef inline const long* _p1(const long[::1] a) noexcept:
+    return &a[0] if a.shape[0] > 0 else NULL
+
+
+cdef inline double* _pw(double[:, ::1] a) noexcept:
+    return &a[0, 0] if a.shape[0] > 0 else NULL
+
+
+# ---------------------------------------------------------------------------------------
+# argument checks (Python level, before the GIL is released)
+# ---------------------------------------------------------------------------------------
+cdef _check3(name, a):
+    if a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {tuple(a.shape[:2])}")
+
+
+cdef _check_same(name_a, Py_ssize_t na, name_b, Py_ssize_t nb):
+    if na != nb:
+        raise ValueError(f"{name_a} and {name_b} must have the same length ({na} != {nb})")
+
+
+# ---------------------------------------------------------------------------------------
+# all sources -> all targets
+# ---------------------------------------------------------------------------------------
+def stokeslet_sum(const double[:, ::1] src, const double[:, ::1] f,
+                  const double[:, ::1] trg, double[:, ::1] out):
+    """out[t] += sum_s S(trg_t, src_s) f_s  (Stokeslet, method reference 4 / eq. 2.8), mu = 1.
+
+    ``S f = (1/(8 pi)) (f/r + r (r.f)/r^3)``, ``r = trg_t - src_s``; pairs with r == 0 are skipped.
+    src, f: (S, 3) (f already times the quadrature weight); trg, out: (T, 3).
+    """
+    _check3("src", src); _check3("f", f); _check3("trg", trg); _check3("out", out)
+    _check_same("src", src.shape[0], "f", f.shape[0])
+    _check_same("trg", trg.shape[0], "out", out.shape[0])
+    cdef Py_ssize_t t, nt = trg.shape[0], ns = src.shape[0]
+    cdef const double* ps = _p2(src)
+    cdef const double* pf = _p2(f)
+    cdef const double* pt = _p2(trg)
+    cdef double* po = _pw(out)
+    with nogil:
+        for t in prange(nt, schedule="static"):
+            _stokeslet_range(ps, pf, 0, ns, NULL, 0, pt + 3 * t, po + 3 * t)
+
+
+def stresslet_sum(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
+                  const double[:, ::1] trg, double[:, ::1] out):
+    """out[t] += sum_s D(trg_t, src_s) g_s  (lambda = 0 double layer, method reference 4 / eq. 2.9).
+
+    ``D g = -(3/(4 pi)) (r.nw)(r.g) r / r^5``, ``r = trg_t - src_s``; r == 0 skipped.
+    nw: normal times quadrature weight (S, 3); g: density (S, 3).
+    """
+    _check3("src", src); _check3("nw", nw); _check3("g", g); _check3("trg", trg); _check3("out", out)
+    _check_same("src", src.shape[0], "nw", nw.shape[0])
+    _check_same("src", src.shape[0], "g", g.shape[0])
+    _check_same("trg", trg.shape[0], "out", out.shape[0])
+    cdef Py_ssize_t t, nt = trg.shape[0], ns = src.shape[0]
+    cdef const double* ps = _p2(src)
+    cdef const double* pn = _p2(nw)
+    cdef const double* pg = _p2(g)
+    cdef const double* pt = _p2(trg)
+    cdef double* po = _pw(out)
+    with nogil:
+        for t in prange(nt, schedule="static"):
+            _stresslet_range(ps, pn, pg, 0, ns, NULL, 0, pt + 3 * t, po + 3 * t)
+
+
+# ---------------------------------------------------------------------------------------
+# everything except the target's own group ("far field minus self")
+# ---------------------------------------------------------------------------------------
+def stokeslet_sum_excl(const double[:, ::1] src, const double[:, ::1] f, const long[::1] src_id,
+                       const double[:, ::1] trg, const long[::1] trg_id, double[:, ::1] out):
+    """As :func:`stokeslet_sum`, skipping the sources with ``src_id[s] == trg_id[t]``.
+
+    With group id = vesicle index this is the sum over all OTHER vesicles (section 4, the
+    j != i terms evaluated by the smooth rule).
+    """
+    _check3("src", src); _check3("f", f); _check3("trg", trg); _check3("out", out)
+    _check_same("src", src.shape[0], "f", f.shape[0])
+    _check_same("src", src.shape[0], "src_id", src_id.shape[0])
+    _check_same("trg", trg.shape[0], "out", out.shape[0])
+    _check_same("trg", trg.shape[0], "trg_id", trg_id.shape[0])
+    cdef Py_ssize_t t, nt = trg.shape[0], ns = src.shape[0]
+    cdef const double* ps = _p2(src)
+    cdef const double* pf = _p2(f)
+    cdef const double* pt = _p2(trg)
+    cdef double* po = _pw(out)
+    cdef const long* pid = _p1(src_id)
+    with nogil:
+        for t in prange(nt, schedule="static"):
+            _stokeslet_range(ps, pf, 0, ns, pid, trg_id[t], pt + 3 * t, po + 3 * t)
+
+
+def stresslet_sum_excl(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
+                       const long[::1] src_id,
+                       const double[:, ::1] trg, const long[::1] trg_id, double[:, ::1] out):
+    """As :func:`stresslet_sum`, skipping the sources with ``src_id[s] == trg_id[t]``."""
+    _check3("src", src); _check3("nw", nw); _check3("g", g); _check3("trg", trg); _check3("out", out)
+    _check_same("src", src.shape[0], "nw", nw.shape[0])
+    _check_same("src", src.shape[0], "g", g.shape[0])
+    _check_same("src", src.shape[0], "src_id", src_id.shape[0])
+    _check_same("trg", trg.shape[0], "out", out.shape[0])
+    _check_same("trg", trg.shape[0], "trg_id", trg_id.shape[0])
+    cdef Py_ssize_t t, nt = trg.shape[0], ns = src.shape[0]
+    cdef const double* ps = _p2(src)
+    cdef const double* pn = _p2(nw)
+    cdef const double* pg = _p2(g)
+    cdef const double* pt = _p2(trg)
+    cdef double* po = _pw(out)
+    cdef const long* pid = _p1(src_id)
+    with nogil:
+        for t in prange(nt, schedule="static"):
+            _stresslet_range(ps, pn, pg, 0, ns, pid, trg_id[t], pt + 3 * t, po + 3 * t)
+
+
+# ---------------------------------------------------------------------------------------
+# (target, source vesicle) pairs: one vesicle's sources only
+# ---------------------------------------------------------------------------------------
+cdef _check_pairs(const long[:, ::1] pairs, const long[::1] src_off, Py_ssize_t ns,
+                  Py_ssize_t nt, double[:, ::1] out):
+    cdef Py_ssize_t p, nv = src_off.shape[0] - 1
+    if pairs.shape[1] != 2:
+        raise ValueError(f"pairs must have shape (P, 2), got ({pairs.shape[0]}, {pairs.shape[1]})")
+    _check3("out", out)
+    _check_same("pairs", pairs.shape[0], "out", out.shape[0])
+    if nv < 0:
+        raise ValueError("src_off must have at least one entry (offsets of V vesicles: V + 1 entries)")
+    if src_off[0] < 0 or src_off[nv] > ns:
+        raise ValueError(f"src_off must lie in [0, {ns}] (number of sources)")
+    for p in range(nv):
+        if src_off[p + 1] < src_off[p]:
+            raise ValueError(f"src_off must be non-decreasing (src_off[{p + 1}] < src_off[{p}])")
+    for p in range(pairs.shape[0]):
+        if pairs[p, 0] < 0 or pairs[p, 0] >= nt:
+            raise IndexError(f"pairs[{p}, 0] = {pairs[p, 0]}: target index out of range [0, {nt})")
+        if pairs[p, 1] < 0 or pairs[p, 1] >= nv:
+            raise IndexError(f"pairs[{p}, 1] = {pairs[p, 1]}: vesicle index out of range [0, {nv})")
+
+
+def stokeslet_sum_pairs(const double[:, ::1] src, const double[:, ::1] f, const long[::1] src_off,
+                        const double[:, ::1] trg, const long[:, ::1] pairs, double[:, ::1] out):
+    """out[p] += sum_{s in src_off[v]:src_off[v+1]} S(trg_t, src_s) f_s  for pairs[p] = (t, v).
+
+    Stokeslet of :func:`stokeslet_sum` restricted to the sources of one vesicle v (its
+    sources are the contiguous range ``src_off[v]:src_off[v+1]``).  Used to subtract the
+    smooth-rule contribution of near and self pairs (method reference 5.3).  out: (P, 3).
+    """
+    _check3("src", src); _check3("f", f); _check3("trg", trg)
+    _check_same("src", src.shape[0], "f", f.shape[0])
+    _check_pairs(pairs, src_off, src.shape[0], trg.shape[0], out)
+    cdef Py_ssize_t p, t, v, npairs = pairs.shape[0]
+    cdef const double* ps = _p2(src)
+    cdef const double* pf = _p2(f)
+    cdef const double* pt = _p2(trg)
+    cdef double* po = _pw(out)
+    with nogil:
+        for p in prange(npairs, schedule="dynamic", chunksize=16):
+            t = pairs[p, 0]
+            v = pairs[p, 1]
+            _stokeslet_range(ps, pf, src_off[v], src_off[v + 1], NULL, 0, pt + 3 * t, po + 3 * p)
+
+
+def stresslet_sum_pairs(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
+                        const long[::1] src_off,
+                        const double[:, ::1] trg, const long[:, ::1] pairs, double[:, ::1] out):
+    """out[p] += sum_{s in src_off[v]:src_off[v+1]} D(trg_t, src_s) g_s  for pairs[p] = (t, v).
+
+    Stresslet of :func:`stresslet_sum` restricted to one vesicle's sources.  out: (P, 3).
+    """
+    _check3("src", src); _check3("nw", nw); _check3("g", g); _check3("trg", trg)
+    _check_same("src", src.shape[0], "nw", nw.shape[0])
+    _check_same("src", src.shape[0], "g", g.shape[0])
+    _check_pairs(pairs, src_off, src.shape[0], trg.shape[0], out)
+    cdef Py_ssize_t p, t, v, npairs = pairs.shape[0]
+    cdef const double* ps = _p2(src)
+    cdef const double* pn = _p2(nw)
+    cdef const double* pg = _p2(g)
+    cdef const double* pt = _p2(trg)
+    cdef double* po = _pw(out)
+    with nogil:
+        for p in prange(npairs, schedule="dynamic", chunksize=16):
+            t = pairs[p, 0]
+            v = pairs[p, 1]
+            _stresslet_range(ps, pn, pg, src_off[v], src_off[v + 1], NULL, 0, pt + 3 * t, po + 3 * p)
+
+
+def max_threads():
+    """Number of OpenMP threads the kernels use (``omp_get_max_threads()``, set by OMP_NUM_THREADS)."""
+    return openmp.omp_get_max_threads()

@@ -1,0 +1,257 @@
+"""Far-field layer potentials over many vesicles (method reference, section 5, regime 3).
+
+For targets ``x_t`` carrying a group id ``trg_id[t]`` (the vesicle the target lies on, or
+any id that no source uses for a free target) and source points ``y_s`` (q-grid points)
+with vesicle id ``src_id[s]``, this module evaluates the smooth-rule sums over all sources
+of OTHER vesicles::
+
+    single layer  u_t = sum_{s: src_id[s] != trg_id[t]} S(x_t, y_s) f_s w_s
+    double layer  u_t = sum_{s: src_id[s] != trg_id[t]} D(x_t, y_s) g_s      (nw_s = n_s w_s)
+
+with the kernels of section 4 (mu = 1, lambda = 0 stresslet; the caller divides by mu and
+multiplies ``g`` by ``(1 - lambda_j)`` of the source vesicle).  The near pairs still have to
+be corrected by the caller: subtract the smooth rule of those pairs
+(:func:`vesflow._kernels.stokes.stokeslet_sum_pairs`) and add the near-singular values.
+
+Backends
+--------
+``"direct"``
+    The Cython kernels ``stokeslet_sum_excl`` / ``stresslet_sum_excl``: exact to rounding,
+    O(T S), OpenMP over targets.
+``"fmm"``
+    fmm3dpy's ``stfmm3d`` (Stokes FMM, O(T + S) at fixed accuracy ``eps``).  The FMM cannot
+    leave out the target's own vesicle, so the sum over ALL sources is computed and the
+    self part (target t against the sources of vesicle ``trg_id[t]``) is subtracted with the
+    direct kernel ``stokeslet_sum_pairs`` / ``stresslet_sum_pairs``: O(N M Q) for N vesicles
+    of M targets and Q sources each (0.3-0.6 s per call at N = 256, p = 16, q = 32 on
+    this machine; see docs/far_field.md).  Conventions (docs: SETUP_NOTES "fmm3dpy"): the
+    FMM stresslet is ``+(3/4pi)(r.mu)(r.nu) r / r^5``, so the orientation passed is
+    ``strsvec = -n w``; ``pottarg`` comes back as (1, 3, T).
+    Targets that coincide with a source of their own vesicle up to rounding (the p-grid and
+    the q-grid share the equator when p and q are both even) are snapped exactly onto that
+    source (distance below ``SNAP_TOL`` times the size of the point cloud): the FMM skips
+    a pair below its own threshold (~1e-15 relative) but evaluates a pair at 1e-13 with
+    huge, badly rounded values, which the subtraction would not cancel.  The far field of
+    the other vesicles moves by O(SNAP_TOL) relative.
+``"auto"``
+    ``"fmm"`` when ``T * S >= AUTO_FMM_MIN_PAIRS`` (and fmm3dpy imports), else ``"direct"``.
+    The threshold was measured with benchmarks/far_field.py (docs/far_field.md).
+
+FMM accuracy: ``eps`` (default ``DEFAULT_EPS = 1e-8``) is fmm3dpy's requested precision;
+the error measured against the direct sum, relative to the largest velocity, is below
+``eps`` (docs/far_field.md).  1e-8 rather than 1e-6: the far field enters every GMRES
+matrix-vector product and the singular/near quadratures are accurate to 1e-6 .. 1e-10, so an
+FMM error of 1e-6 would dominate them, for a measured cost of only about 1.3x.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from vesflow._kernels import search as _search
+from vesflow._kernels import stokes as _stokes
+from vesflow.errors import NumericalFailure, SceneError
+
+BACKENDS = ("direct", "fmm", "auto")
+DEFAULT_EPS = 1e-8
+# Cost model of "auto", measured with benchmarks/far_field.py on this machine (docs/far_field.md):
+# direct sum: seconds per (target, source) pair for ONE OpenMP thread (divided by the threads);
+DIRECT_SECONDS_PER_PAIR = 3.6e-9
+# FMM (fmm3dpy wheel, serial): seconds per point (sources + targets) at the measured eps,
+# interpolated in log(eps) in between, clamped outside.
+FMM_SECONDS_PER_POINT = {1e-6: 1.0e-4, 1e-8: 2.0e-4, 1e-10: 2.5e-4}
+# targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
+# moved onto it (FMM backend only)
+SNAP_TOL = 1e-10
+
+
+def _have_fmm():
+    try:
+        import fmm3dpy  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
+    """Predicted seconds per evaluation ``(direct, fmm)`` of the single layer (model above)."""
+    threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
+    t_direct = float(nsrc) * float(ntrg) * DIRECT_SECONDS_PER_PAIR / threads
+    le = sorted(FMM_SECONDS_PER_POINT)
+    per_point = float(np.exp(np.interp(np.log(eps), np.log(le),
+                                       np.log([FMM_SECONDS_PER_POINT[e] for e in le]))))
+    return t_direct, (float(nsrc) + float(ntrg)) * per_point
+
+
+def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS):
+    """Resolve ``backend`` ("direct", "fmm" or "auto") for S sources and T targets.
+
+    "auto" takes the FMM when :func:`predicted_seconds` says it is faster and fmm3dpy
+    imports, else the direct sum.
+    """
+    if backend not in BACKENDS:
+        raise SceneError(f"far-field backend {backend!r} is not one of {', '.join(BACKENDS)}")
+    if backend == "auto":
+        t_direct, t_fmm = predicted_seconds(nsrc, ntrg, eps)
+        if t_fmm < t_direct and _have_fmm():
+            return "fmm"
+        return "direct"
+    if backend == "fmm" and not _have_fmm():
+        raise SceneError("far-field backend 'fmm' needs fmm3dpy (pip install fmm3dpy); "
+                         "use backend 'direct' or 'auto'")
+    return backend
+
+
+def _points(name, a):
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (n, 3), got {a.shape}")
+    return a
+
+
+def _ids(name, a, n):
+    a = np.ascontiguousarray(a, dtype=np.int64)
+    if a.shape != (n,):
+        raise ValueError(f"{name} must have shape ({n},), got {a.shape}")
+    return a
+
+
+class FarField:
+    """Far field of a fixed geometry: sources ``src`` (S, 3) grouped by ``src_id`` (S,),
+    targets ``trg`` (T, 3) with ``trg_id`` (T,).  Densities are given per call, so one
+    object serves every GMRES iteration of a time step.
+
+    Attributes: ``backend`` (resolved), ``eps``, ``ids`` (the distinct source vesicle ids,
+    sorted), ``src_off`` (offsets of each vesicle's sources in the id-sorted order),
+    ``n_snapped`` (targets moved onto a coincident own source, FMM only).
+    """
+
+    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS):
+        self.src = _points("src", src)
+        self.trg = _points("trg", trg)
+        self.src_id = _ids("src_id", src_id, self.src.shape[0])
+        self.trg_id = _ids("trg_id", trg_id, self.trg.shape[0])
+        if not (0.0 < eps < 1.0):
+            raise SceneError(f"FMM accuracy eps must lie in (0, 1), got {eps}")
+        self.eps = float(eps)
+        self.backend = choose_backend(self.src.shape[0], self.trg.shape[0], backend, self.eps)
+        self.n_snapped = 0
+        if self.backend == "fmm":
+            self._setup_fmm()
+
+    # ------------------------------------------------------------------ set-up (FMM)
+    def _setup_fmm(self):
+        sid = self.src_id
+        self._perm = None
+        if sid.size and np.any(sid[1:] < sid[:-1]):
+            self._perm = np.argsort(sid, kind="stable")
+            sid = sid[self._perm]
+        self._src_sorted = self.src if self._perm is None else np.ascontiguousarray(self.src[self._perm])
+        self.ids, starts = np.unique(sid, return_index=True)
+        self.src_off = np.append(starts, sid.size).astype(np.int64)
+        # vesicle index (into ids) of each target's own vesicle, -1 if no source has its id
+        nt = self.trg.shape[0]
+        trg_vi = np.full(nt, -1, dtype=np.int64)
+        if self.ids.size:
+            vi = np.minimum(np.searchsorted(self.ids, self.trg_id), self.ids.size - 1)
+            trg_vi = np.where(self.ids[vi] == self.trg_id, vi, -1).astype(np.int64)
+        tsel = np.flatnonzero(trg_vi >= 0)
+        self._self_pairs = np.ascontiguousarray(np.stack([tsel, trg_vi[tsel]], axis=1), dtype=np.int64)
+        # snap targets that coincide with an own source up to rounding
+        allp = np.concatenate([self.src, self.trg])
+        size = float(np.max(np.ptp(allp, axis=0))) if allp.shape[0] > 1 else 0.0
+        tol = SNAP_TOL * (size if size > 0.0 else 1.0)
+        hit = _search.coincident_sources(self._src_sorted, self.src_off, self.trg, trg_vi, tol)
+        self._trg_fmm = self.trg
+        moved = np.flatnonzero(hit >= 0)
+        if moved.size:
+            self._trg_fmm = self.trg.copy()
+            self._trg_fmm[moved] = self._src_sorted[hit[moved]]
+        self.n_snapped = int(moved.size)
+        self._srcT = np.ascontiguousarray(self.src.T)
+        self._trgT = np.ascontiguousarray(self._trg_fmm.T)
+
+    def _sorted(self, a):
+        return a if self._perm is None else np.ascontiguousarray(a[self._perm])
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, f_w=None, nw=None, g=None):
+        """Single layer of ``f_w`` plus double layer of ``g`` with orientations ``nw``, (T, 3).
+
+        ``f_w``: traction times quadrature weight (S, 3) or None; ``nw``: normal times
+        weight and ``g``: density (S, 3), both or neither.  With the FMM both layers cost
+        one FMM call.
+        """
+        ns, nt = self.src.shape[0], self.trg.shape[0]
+        if (nw is None) != (g is None):
+            raise ValueError("double layer: give both nw and g, or neither")
+        f_w = None if f_w is None else _points("f_w", f_w)
+        nw = None if nw is None else _points("nw", nw)
+        g = None if g is None else _points("g", g)
+        for name, a in (("f_w", f_w), ("nw", nw), ("g", g)):
+            if a is not None and a.shape[0] != ns:
+                raise ValueError(f"{name} has {a.shape[0]} rows, src has {ns} points")
+        out = np.zeros((nt, 3))
+        if nt == 0 or ns == 0 or (f_w is None and g is None):
+            return out
+        if self.backend == "direct":
+            if f_w is not None:
+                _stokes.stokeslet_sum_excl(self.src, f_w, self.src_id, self.trg, self.trg_id, out)
+            if g is not None:
+                _stokes.stresslet_sum_excl(self.src, nw, g, self.src_id, self.trg, self.trg_id, out)
+            return out
+        return self._evaluate_fmm(f_w, nw, g, out)
+
+    def _evaluate_fmm(self, f_w, nw, g, out):
+        import fmm3dpy
+
+        kw = {}
+        if f_w is not None:
+            kw["stoklet"] = np.ascontiguousarray(f_w.T)
+        if g is not None:
+            kw["strslet"] = np.ascontiguousarray(g.T)
+            kw["strsvec"] = np.ascontiguousarray(-nw.T)     # fmm3dpy's stresslet = -D
+        res = fmm3dpy.stfmm3d(eps=self.eps, sources=self._srcT, targets=self._trgT,
+                              ifppregtarg=1, **kw)
+        ier = getattr(res, "ier", 0)
+        if ier not in (0, None):
+            raise NumericalFailure(f"fmm3dpy.stfmm3d failed with ier = {ier} "
+                                   f"({self.src.shape[0]} sources, {self.trg.shape[0]} targets); "
+                                   "use the far-field backend 'direct'")
+        out += np.asarray(res.pottarg).reshape(3, -1).T
+        # subtract the self part (target against the sources of its own vesicle): O(N M Q)
+        pairs = self._self_pairs
+        if pairs.shape[0]:
+            selfv = np.zeros((pairs.shape[0], 3))
+            src = self._src_sorted
+            if f_w is not None:
+                _stokes.stokeslet_sum_pairs(src, self._sorted(f_w), self.src_off, self._trg_fmm, pairs, selfv)
+            if g is not None:
+                _stokes.stresslet_sum_pairs(src, self._sorted(nw), self._sorted(g), self.src_off,
+                                            self._trg_fmm, pairs, selfv)
+            out[pairs[:, 0]] -= selfv
+        return out
+
+    def single_layer(self, f_w):
+        """``sum over other vesicles of S[f w]`` at the targets, (T, 3)."""
+        return self.evaluate(f_w=f_w)
+
+    def double_layer(self, nw, g):
+        """``sum over other vesicles of D[g]`` (lambda = 0 kernel) at the targets, (T, 3)."""
+        return self.evaluate(nw=nw, g=g)
+
+
+def far_single_layer(src, f_w, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS):
+    """Single layer of all OTHER vesicles at the targets (section 4 kernel, mu = 1), (T, 3).
+
+    ``u_t = sum_{src_id[s] != trg_id[t]} (1/(8 pi)) (f_s/r + r (r.f_s)/r^3)``, r = x_t - y_s,
+    ``f_w`` = traction times quadrature weight.  See :class:`FarField` for the backends.
+    """
+    return FarField(src, src_id, trg, trg_id, backend, eps).evaluate(f_w=f_w)
+
+
+def far_double_layer(src, nw, g, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS):
+    """Double layer (lambda = 0 stresslet) of all OTHER vesicles at the targets, (T, 3).
+
+    ``u_t = sum_{src_id[s] != trg_id[t]} -(3/(4 pi)) (r.nw_s)(r.g_s) r / r^5``, r = x_t - y_s.
+    """
+    return FarField(src, src_id, trg, trg_id, backend, eps).evaluate(nw=nw, g=g)
