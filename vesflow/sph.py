@@ -174,13 +174,21 @@ class Transform:
 
     # ---------------------------------------------------------------- synthesis
     def _legendre_step(self, padded, table):
-        # padded (..., 2, M, N) ; table (M, I, N) -> (..., 2, M, I)
-        return np.einsum("...kmn,min->...kmi", padded, table, optimize=True)
+        # padded (..., 2, M, N) ; table (M, I, N) -> (..., 2, M, I): one batched GEMM over m
+        lead = padded.shape[:-2]
+        B = int(np.prod(lead, dtype=np.int64))
+        X = np.moveaxis(padded.reshape(B, self.p + 1, self.p + 1), 0, -1)       # (M, N, B)
+        Y = np.matmul(table, X)                                                  # (M, I, B)
+        return np.moveaxis(Y, -1, 0).reshape(lead + (self.p + 1, table.shape[1]))
 
     def _fourier_step(self, F, cosm, sinm):
-        # F (..., 2, M, I) -> (..., I, J)
-        return np.einsum("...mi,mj->...ij", F[..., 0, :, :], cosm, optimize=True) + \
-            np.einsum("...mi,mj->...ij", F[..., 1, :, :], sinm, optimize=True)
+        # F (..., 2, M, I) -> (..., I, J): one GEMM with the stacked trig matrices
+        lead = F.shape[:-3]
+        M, I = F.shape[-2], F.shape[-1]
+        B = int(np.prod(lead, dtype=np.int64))
+        A = np.swapaxes(F.reshape(B, 2 * M, I), 1, 2).reshape(B * I, 2 * M)
+        out = A @ np.concatenate([cosm, sinm], axis=0)
+        return out.reshape(lead + (I, cosm.shape[1]))
 
     def synth(self, coeffs, d=None):
         """Q: values on the q-grid, (..., npts).  d selects a derivative: None, 't', 'p', 'tt', 'tp', 'pp'."""
@@ -223,22 +231,29 @@ class Transform:
         L2 projection onto it for fields of degree <= q.
         """
         values = np.asarray(values, dtype=float)
-        g = values.reshape(values.shape[:-1] + (self.nlat, self.nlon))
-        Fc = np.einsum("...ij,mj->...mi", g, self._fourier_analysis_cos, optimize=True)
-        Fs = np.einsum("...ij,mj->...mi", g, self._fourier_analysis_sin, optimize=True)
-        F = np.stack([Fc, Fs], axis=-3) * self.glw          # (..., 2, M, I), Gauss weights in theta
-        padded = np.einsum("...kmi,min->...kmn", F, self.lam, optimize=True)
+        return self._analysis_like(values, self._fourier_analysis_cos, self._fourier_analysis_sin,
+                                   self.glw, full)
+
+    def _analysis_like(self, values, acos, asin, latw, full):
+        """Fourier projection with (acos, asin), latitude weights, then the transposed Legendre step."""
+        lead = values.shape[:-1]
+        B = int(np.prod(lead, dtype=np.int64))
+        g = values.reshape(B * self.nlat, self.nlon)
+        F = g @ np.concatenate([acos, asin], axis=0).T                     # (B*I, 2M)
+        M = self.p + 1
+        F = F.reshape(B, self.nlat, 2 * M) * (latw[None, :, None] if latw is not None else 1.0)
+        F = np.moveaxis(F.reshape(B, self.nlat, 2, M), 0, -1)               # (I, 2, M, B)
+        F = np.moveaxis(F, 2, 0)                                            # (M, I, 2, B)
+        Xm = F.reshape(M, self.nlat, 2 * B)
+        padded = np.matmul(np.swapaxes(self.lam, 1, 2), Xm)                 # (M, N, 2B)
+        padded = padded.reshape(M, M, 2, B)
+        padded = np.moveaxis(padded, (3, 2, 0, 1), (0, 1, 2, 3)).reshape(lead + (2, M, M))
         return self.unpad(padded, full=full)
 
     def synth_transpose(self, values, full=False):
         """Q^T: the transpose of synth as a linear map, (..., npts) -> (..., C) or (..., (p+1)^2)."""
         values = np.asarray(values, dtype=float)
-        g = values.reshape(values.shape[:-1] + (self.nlat, self.nlon))
-        Fc = np.einsum("...ij,mj->...mi", g, self.cos_m, optimize=True)
-        Fs = np.einsum("...ij,mj->...mi", g, self.sin_m, optimize=True)
-        F = np.stack([Fc, Fs], axis=-3)
-        padded = np.einsum("...kmi,min->...kmn", F, self.lam, optimize=True)
-        return self.unpad(padded, full=full)
+        return self._analysis_like(values, self.cos_m, self.sin_m, None, full)
 
     def integrate(self, values):
         """Integral over the unit sphere of a q-grid field (..., npts)."""

@@ -1,0 +1,125 @@
+"""The linear operator of the semi-implicit step (method reference 6; paper 3.6) as a petsc4py MatPython context.
+
+Unknowns per vesicle i, stored contiguously as one block of 4C: velocity u_i (3C
+coefficients, component-major) then tension sigma_i (C).  For every vesicle
+
+    alpha_i u_i - sum_j [ S_ij (dt B_j[u_j] + f_sigma(X_j, sigma_j)) - D_ij u_j ]  = rhs_i
+    div_gamma_i u_i                                                               = 0
+
+with alpha_i = (1 + lambda_i)/2 and D_ij the (1 - lambda_j) double layer whose kernel gives
+D[1] = 1 inside (method reference 4).  The sign of D is the opposite of the one printed in
+the method reference, section 6: with it a spherical vesicle sediments at U / lambda instead
+of Stokes' velocity U for every lambda (tests/test_dynamics.py pins this).  Forces are formed on the upsampled q-grid and filtered to
+degree p (Galerkin).  With explicit coupling only j = i is kept on the left.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import forces, sph
+
+
+class VesicleParams:
+    """Per-vesicle physics: bending modulus, viscosity contrast, excess density (arrays of N)."""
+
+    def __init__(self, kappa, lam, drho, viscosity=1.0):
+        self.kappa = np.asarray(kappa, dtype=float)
+        self.lam = np.asarray(lam, dtype=float)
+        self.drho = np.asarray(drho, dtype=float)
+        self.mu = float(viscosity)
+
+    @property
+    def alpha(self):
+        return 0.5 * (1.0 + self.lam)
+
+
+class StepOperator:
+    """MatPython context: mult applies the left side above (geometry frozen at X^n)."""
+
+    def __init__(self, surface, params, dt, layer_potentials, q_force=None, coupling="implicit"):
+        self.surface, self.params, self.dt = surface, params, float(dt)
+        self.lp = layer_potentials
+        self.p = surface.p
+        self.q_force = q_force or 2 * self.p
+        self.geo = surface.geometry(self.q_force)
+        self.Tf = sph.transform(self.p, self.q_force)
+        self.N = surface.n_vesicles
+        self.C = sph.n_coeffs(self.p)
+        self.block = 4 * self.C
+        self.coupling = coupling
+        self.n_mult = 0
+
+    # ------------------------------------------------------------------ pieces
+    def split(self, x):
+        x = np.asarray(x).reshape(self.N, self.block)
+        return x[:, :3 * self.C].reshape(self.N, 3, self.C), x[:, 3 * self.C:]
+
+    def join(self, u, s):
+        return np.concatenate([u.reshape(self.N, 3 * self.C), s.reshape(self.N, self.C)], axis=1).ravel()
+
+    def grid_vec(self, c):
+        """Coefficients (N, 3, C) -> upsampled grid (N, npts, 3)."""
+        return np.moveaxis(self.Tf.synth(c), -2, -1)
+
+    def coeffs_vec(self, v):
+        return self.Tf.analysis(np.moveaxis(v, -1, -2))
+
+    def membrane_force(self, u, sigma, geo=None, kappa=None):
+        """Coefficients of dt B[u] + f_sigma(sigma) (the implicit part of the traction jump)."""
+        geo = self.geo if geo is None else geo
+        kappa = self.params.kappa if kappa is None else kappa
+        ug = self.grid_vec(u)
+        sg = self.Tf.synth(sigma)
+        f = self.dt * forces.linearized_bending_force(geo, kappa, ug) + forces.tension_force(geo, sg)
+        return self.coeffs_vec(f)
+
+    def divergence(self, u, geo=None):
+        geo = self.geo if geo is None else geo
+        return self.Tf.analysis(geo.div(self.grid_vec(u)))
+
+    def apply(self, x):
+        """The operator on a NumPy vector of length N * 4C."""
+        u, s = self.split(x)
+        f = self.membrane_force(u, s)
+        g = -u if self.lp.want_double else None
+        if self.coupling == "implicit":
+            lpv = self.lp.apply(f, g)
+        else:
+            lpv = self.lp.self_part(f, g)
+        r1 = self.params.alpha[:, None, None] * u - lpv
+        return self.join(r1, self.divergence(u))
+
+    # ------------------------------------------------------------------ petsc4py Mat python interface
+    def mult(self, mat, x, y):
+        self.n_mult += 1
+        y.setArray(self.apply(x.getArray(readonly=True)))
+
+    def view(self, mat, viewer):
+        viewer.printfASCII(f"vesflow StepOperator: {self.N} vesicles, p = {self.p}, dt = {self.dt:g}, "
+                           f"coupling {self.coupling}, double layer {'on' if self.lp.want_double else 'off'}\n")
+
+    # ------------------------------------------------------------------ dense self blocks (preconditioner)
+    def self_block(self, v, chunk=256):
+        """The dense 4C x 4C block of vesicle v with itself (forces, self layer potentials, divergence)."""
+        from .surface import Surface
+        sub = Surface(self.surface.coeffs[v:v + 1], self.p)
+        geo = sub.geometry(self.q_force)
+        C, n = self.C, self.block
+        ops_S = self.lp.self_ops.single[v]
+        ops_D = self.lp.self_ops.double[v] if self.lp.want_double else None
+        lam, alpha, kappa = self.params.lam[v], self.params.alpha[v], self.params.kappa[v:v + 1]
+        A = np.empty((n, n))
+        for c0 in range(0, n, chunk):
+            cols = np.arange(c0, min(n, c0 + chunk))
+            E = np.zeros((len(cols), n))
+            E[np.arange(len(cols)), cols] = 1.0
+            u = E[:, :3 * C].reshape(-1, 3, C)
+            s = E[:, 3 * C:]
+            f = self.membrane_force(u, s, geo, kappa)
+            r = (ops_S @ f.reshape(-1, 3 * C).T).T
+            if ops_D is not None:
+                r -= (1.0 - lam) * (ops_D @ u.reshape(-1, 3 * C).T).T
+            r1 = alpha * u.reshape(-1, 3 * C) - r
+            r2 = self.Tf.analysis(geo.div(self.grid_vec(u)))
+            A[:, cols] = np.concatenate([r1, r2], axis=1).T
+        return A

@@ -1,0 +1,434 @@
+"""vesflow's own command-line options: a registry, typed reading, validation, help.
+
+Options come through a *getter* ``getter(name, type, default) -> value or None`` (None: not
+given), so the same code reads PETSc's options database (:func:`petsc_getter`), a plain dict
+(:func:`dict_getter`, tests) or an argument list (:func:`argv_getter`).  Values may come typed
+or as strings; they are converted and checked here, and every problem raises
+:class:`vesflow.errors.OptionError` with one line ``-ves_p = 100: must be an integer in [2, 64]``.
+
+    scene = apply_overrides(scene, getter)      # options that override scene keys
+    opts = read_options(getter, scene)          # every other knob, defaults resolved
+    opts.q_self, opts.adapt, opts["-ves_far"]
+
+Nothing here imports petsc4py at module level.  The list is in docs/scene.md and
+``help_text()`` (``vesflow run -help``).
+"""
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from .errors import OptionError
+
+__all__ = ["Option", "OPTIONS", "REGISTRY", "OptionValues", "apply_overrides", "read_options", "help_text",
+           "dict_getter", "argv_getter", "petsc_getter", "check_unknown", "parse_value"]
+
+
+@dataclass(frozen=True)
+class Option:
+    name: str                     # "-ves_q_self"
+    type: type                    # int, float, str or bool
+    default: object               # None: derived (see default_text) or "not set"
+    help: str
+    group: str
+    scene_key: str | None = None  # the scene key this option overrides
+    choices: tuple | None = None
+    gt: float | None = None
+    ge: float | None = None
+    lt: float | None = None
+    le: float | None = None
+    default_text: str | None = None
+    alias_of: str | None = None   # another spelling of the same knob
+
+    @property
+    def key(self) -> str:
+        """Attribute name in OptionValues: "-ves_q_self" -> "q_self", "-ts_max_steps" -> "ts_max_steps"."""
+        k = self.name.lstrip("-")
+        return k[4:] if k.startswith("ves_") else k
+
+    @property
+    def shown_default(self) -> str:
+        if self.default_text is not None:
+            return self.default_text
+        if self.type is bool:
+            return "on" if self.default else "off"
+        return "none" if self.default is None else _show(self.default)
+
+    @property
+    def metavar(self) -> str:
+        if self.choices:
+            return "{" + ",".join(self.choices) + "}"
+        return {int: "<int>", float: "<real>", str: "<string>", bool: "[on|off]"}[self.type]
+
+
+def _show(v) -> str:
+    if isinstance(v, bool):
+        return "on" if v else "off"
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+_O = Option
+REGISTRY: tuple[Option, ...] = (
+    # -- scene overrides ---------------------------------------------------------------------
+    _O("-ves_p", int, None, "spherical-harmonic degree p of every vesicle", "scene overrides",
+       scene_key="discretization.p", ge=2, le=64, default_text="scene (16)"),
+    _O("-ts_max_time", float, None, "time horizon T", "scene overrides",
+       scene_key="time.horizon", gt=0, default_text="scene (10)"),
+    _O("-ves_horizon", float, None, "same as -ts_max_time", "scene overrides",
+       scene_key="time.horizon", gt=0, default_text="scene (10)", alias_of="-ts_max_time"),
+    _O("-ts_dt", float, None, "first time step (adaptivity changes it)", "scene overrides",
+       scene_key="time.dt", gt=0, default_text="scene (min(0.1, T/10))"),
+    _O("-ves_repulsion_radius", float, None, "repulsion radius R_repul; 0 switches repulsion off",
+       "scene overrides", scene_key="repulsion.radius", ge=0, default_text="scene (off)"),
+    _O("-ves_output_every", float, None, "simulated time between saved frames", "scene overrides",
+       scene_key="output.every", gt=0, default_text="scene (T/100)"),
+    # -- quadrature and layer potentials -------------------------------------------------------
+    _O("-ves_q_self", int, None, "upsampled degree q of the singular (self) quadrature, >= p", "quadrature",
+       ge=2, le=256, default_text="2p"),
+    _O("-ves_q_near", int, None, "upsampled degree q of the near-singular rule, >= p", "quadrature",
+       ge=2, le=256, default_text="2p"),
+    _O("-ves_q_far", int, None, "upsampled degree q of the far-field rule, >= p", "quadrature",
+       ge=2, le=256, default_text="p"),
+    _O("-ves_near_factor", float, 1.0, "near-zone width h_n = factor * sqrt(A_max / q_near)", "quadrature",
+       gt=0, le=10),
+    _O("-ves_far", str, "auto", "far-field sum: auto = direct up to -ves_far_direct_max vesicles in free "
+       "space, else ewald (fmm if installed and asked for)", "quadrature",
+       choices=("auto", "direct", "fmm", "ewald")),
+    _O("-ves_far_direct_max", int, 64, "with -ves_far auto: largest number of vesicles summed directly",
+       "quadrature", ge=0),
+    _O("-ves_far_tol", float, 1e-6, "requested relative accuracy of the fmm / ewald far-field sum",
+       "quadrature", gt=0, lt=1),
+    _O("-ves_coupling", str, "implicit", "inter-vesicle interactions in the solve (implicit) or "
+       "lagged to the right-hand side (explicit: cheaper, less stable)", "solver",
+       choices=("implicit", "explicit")),
+    # -- time stepping ---------------------------------------------------------------------------
+    _O("-ves_adapt", str, "doubling", "adaptive time step: none (fixed dt), doubling (one step vs two "
+       "half steps), invariants (relative change of area and volume)", "time stepping",
+       choices=("none", "doubling", "invariants")),
+    _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
+    _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",
+       gt=0, le=1),
+    _O("-ves_dt_min", float, 1e-6, "smallest time step (also bounds the first step); below it the run stops (exit status 3)",
+       "time stepping", gt=0),
+    _O("-ves_dt_max", float, None, "largest time step (also bounds the first step)", "time stepping", gt=0, default_text="none"),
+    _O("-ves_max_rejects", int, 20, "consecutive rejected steps before the run stops (exit status 3)",
+       "time stepping", ge=1),
+    _O("-ves_collision", bool, True, "reject a step whose surfaces touch or cross", "time stepping"),
+    _O("-ts_max_steps", int, None, "stop after this many accepted steps", "time stepping", ge=0,
+       default_text="none"),
+    _O("-ts_monitor", bool, False, "print one line per attempted step", "time stepping"),
+    # -- corrections -------------------------------------------------------------------------------
+    _O("-ves_correct", str, "area_volume", "restore each vesicle's area and volume after a step",
+       "corrections", choices=("area_volume", "none")),
+    _O("-ves_correct_tol", float, 1e-6, "relative area / volume error left by the correction",
+       "corrections", gt=0, lt=1),
+    _O("-ves_correct_max_its", int, 5, "Newton iterations of the correction", "corrections", ge=1, le=100),
+    _O("-ves_reparam", bool, True, "reparameterize surfaces (tangential moves) after each step", "corrections"),
+    _O("-ves_reparam_dtau_max", float, 1e-3, "largest pseudo-time step of reparameterization",
+       "corrections", gt=0),
+    _O("-ves_reparam_tol", float, 1e-5, "reparameterization stops when the pseudo-time step falls below this",
+       "corrections", gt=0),
+    _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step", "corrections",
+       ge=1, le=10000),
+    # -- output ----------------------------------------------------------------------------------
+    _O("-ves_checkpoint_every", float, None, "simulated time between restart checkpoints", "output",
+       gt=0, default_text="output.every"),
+    _O("-ves_progress", str, "auto", "progress line: auto = only on a terminal", "output",
+       choices=("auto", "on", "off")),
+)
+del _O
+OPTIONS: dict[str, Option] = {o.name: o for o in REGISTRY}
+GROUPS = ("scene overrides", "quadrature", "solver", "time stepping", "corrections", "output")
+
+_TRUE = ("1", "true", "yes", "on", "")
+_FALSE = ("0", "false", "no", "off")
+
+
+def _fail(opt: Option, raw, msg: str):
+    err = OptionError(f"{opt.name} = {_fmt_raw(raw)}: {msg}")
+    err.key = opt.name
+    raise err
+
+
+def _fmt_raw(raw) -> str:
+    if isinstance(raw, bool):
+        return "on" if raw else "off"
+    s = (raw if raw.strip() else repr(raw)) if isinstance(raw, str) else _show(raw)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+def _range_text(o: Option) -> str:
+    lo = f"({_show(o.gt)}" if o.gt is not None else (f"[{_show(o.ge)}" if o.ge is not None else None)
+    hi = f"{_show(o.lt)})" if o.lt is not None else (f"{_show(o.le)}]" if o.le is not None else None)
+    what = "an integer" if o.type is int else "a number"
+    if lo and hi:
+        return f"must be {what} in {lo}, {hi}"
+    if lo:
+        return f"must be {what} {'>' if o.gt is not None else '>='} {_show(o.gt if o.gt is not None else o.ge)}"
+    if hi:
+        return f"must be {what} {'<' if o.lt is not None else '<='} {_show(o.lt if o.lt is not None else o.le)}"
+    return f"must be {what}"
+
+
+def parse_value(opt: Option | str, raw):
+    """Convert and check one option value (typed or string); raises OptionError."""
+    o = OPTIONS[opt] if isinstance(opt, str) else opt
+    if o.type is bool:
+        if isinstance(raw, bool):
+            return raw
+        if isinstance(raw, str) and raw.strip().lower() in _TRUE + _FALSE:
+            return raw.strip().lower() in _TRUE
+        if isinstance(raw, int) and raw in (0, 1):
+            return bool(raw)
+        _fail(o, raw, "expected on or off (true/false, yes/no, 1/0)")
+    if o.type is str:
+        if not isinstance(raw, str):
+            _fail(o, raw, f"expected one of {', '.join(o.choices)}" if o.choices else "expected a string")
+        v = raw.strip()
+        if o.choices and v not in o.choices:
+            sugg = difflib.get_close_matches(v, o.choices, n=1, cutoff=0.5)
+            _fail(o, raw, f"must be one of {', '.join(o.choices)}" + (f"; did you mean {sugg[0]}?" if sugg else ""))
+        return v
+    if isinstance(raw, bool):
+        _fail(o, raw, _range_text(o))
+    if o.type is int:
+        if isinstance(raw, float) and raw.is_integer():
+            v = int(raw)
+        elif isinstance(raw, int):
+            v = raw
+        elif isinstance(raw, str):
+            try:
+                v = int(raw.strip())
+            except ValueError:
+                _fail(o, raw, _range_text(o))
+        else:
+            _fail(o, raw, _range_text(o))
+    else:
+        if isinstance(raw, (int, float)):
+            v = float(raw)
+        elif isinstance(raw, str):
+            try:
+                v = float(raw.strip())
+            except ValueError:
+                _fail(o, raw, _range_text(o))
+        else:
+            _fail(o, raw, _range_text(o))
+        if not math.isfinite(v):
+            _fail(o, raw, "must be a finite number")
+    bad = ((o.gt is not None and not v > o.gt) or (o.ge is not None and not v >= o.ge)
+           or (o.lt is not None and not v < o.lt) or (o.le is not None and not v <= o.le))
+    if bad:
+        _fail(o, raw, _range_text(o))
+    return v
+
+
+def _get(getter, o: Option):
+    raw = getter(o.name, o.type, o.default)
+    return None if raw is None else parse_value(o, raw)
+
+
+# ----------------------------------------------------------------------------------------
+# Scene overrides
+# ----------------------------------------------------------------------------------------
+def apply_overrides(scene, getter):
+    """A new Scene with the values of the options that override scene keys (-ves_p,
+    -ts_max_time / -ves_horizon, -ts_dt, -ves_repulsion_radius, -ves_output_every).
+    Defaults derived from the horizon (time.dt, output.every) follow a new horizon unless
+    they were given in the scene."""
+    vals = {o.name: _get(getter, o) for o in REGISTRY if o.scene_key is not None}
+    h1, h2 = vals.pop("-ts_max_time"), vals.pop("-ves_horizon")
+    if h1 is not None and h2 is not None and h1 != h2:
+        _fail(OPTIONS["-ves_horizon"], h2, f"contradicts -ts_max_time = {_show(h1)} (give one of them)")
+    horizon = h1 if h1 is not None else h2
+    changes = {}
+    if horizon is not None:
+        changes["time.horizon"] = horizon
+    for name, v in vals.items():
+        if v is not None:
+            changes[OPTIONS[name].scene_key] = v
+    if not changes:
+        return scene
+    new = scene.replace(**changes)
+    t = new.time
+    if t.dt > t.horizon:
+        if "time.dt" in changes:
+            _fail(OPTIONS["-ts_dt"], changes["time.dt"], f"larger than the time horizon {_show(t.horizon)}")
+        name = "-ts_max_time" if h1 is not None else "-ves_horizon"
+        _fail(OPTIONS[name], horizon, f"smaller than the first time step time.dt = {_show(t.dt)} "
+                                      "(give -ts_dt too)")
+    return new
+
+
+# ----------------------------------------------------------------------------------------
+# All other knobs
+# ----------------------------------------------------------------------------------------
+class OptionValues(Mapping):
+    """Resolved option values (immutable): by key (``opts.q_self``, ``opts["q_self"]``) or by
+    option name (``opts["-ves_q_self"]``).  ``given`` holds the names set by the user."""
+
+    def __init__(self, values: dict, given: frozenset):
+        object.__setattr__(self, "_values", dict(values))
+        object.__setattr__(self, "given", frozenset(given))
+
+    def __getitem__(self, k):
+        if k in OPTIONS:
+            k = OPTIONS[k].key
+        return self._values[k]
+
+    def __iter__(self):
+        return iter(self._values)
+
+    def __len__(self):
+        return len(self._values)
+
+    def __getattr__(self, k):
+        try:
+            return self._values[k]
+        except KeyError:
+            raise AttributeError(k) from None
+
+    def __setattr__(self, k, v):
+        raise AttributeError("OptionValues is immutable")
+
+    def as_argv(self) -> list[str]:
+        """The options in force as an argument list (for the output file's record)."""
+        out = []
+        for o in REGISTRY:
+            if o.scene_key is None and o.key in self._values and self._values[o.key] is not None:
+                out += [o.name, _show(self._values[o.key])]
+        return out
+
+    def __repr__(self):
+        return "OptionValues(" + ", ".join(f"{k}={v!r}" for k, v in self._values.items()) + ")"
+
+
+def read_options(getter, scene=None) -> OptionValues:
+    """Every option that is not a scene override, checked, with derived defaults resolved
+    against the scene (q_self = q_near = 2p, q_far = p, checkpoint_every = output.every)."""
+    vals, given = {}, set()
+    for o in REGISTRY:
+        if o.scene_key is not None:
+            continue
+        v = _get(getter, o)
+        if v is None:
+            v = o.default
+        else:
+            given.add(o.name)
+        vals[o.key] = v
+    if scene is not None:
+        p = scene.discretization.p
+        for key, mult in (("q_self", 2), ("q_near", 2), ("q_far", 1)):
+            if vals[key] is None:
+                vals[key] = mult * p
+            elif vals[key] < p:
+                _fail(OPTIONS[f"-ves_{key}"], vals[key], f"must be >= p = {p}")
+        if vals["checkpoint_every"] is None:
+            vals["checkpoint_every"] = scene.output.every
+    if vals["dt_max"] is not None and vals["dt_min"] >= vals["dt_max"]:
+        _fail(OPTIONS["-ves_dt_min"], vals["dt_min"], f"must be < -ves_dt_max = {_show(vals['dt_max'])}")
+    if vals["reparam_tol"] >= vals["reparam_dtau_max"]:
+        _fail(OPTIONS["-ves_reparam_tol"], vals["reparam_tol"],
+              f"must be < -ves_reparam_dtau_max = {_show(vals['reparam_dtau_max'])}")
+    return OptionValues(vals, frozenset(given))
+
+
+def check_unknown(names) -> None:
+    """Raise OptionError for a given name that looks like a vesflow option but is not one
+    (``-ves_qself`` -> did you mean -ves_q_self?).  Names with or without the leading dash."""
+    known = [o.name for o in REGISTRY]
+    for n in names:
+        name = "-" + str(n).lstrip("-")
+        if name.startswith("-ves_") and name not in OPTIONS:
+            sugg = difflib.get_close_matches(name, known, n=1, cutoff=0.6)
+            err = OptionError(f"{name}: unknown vesflow option; " + (f"did you mean {sugg[0]}?" if sugg
+                              else "see vesflow run -help"))
+            err.key = name
+            raise err
+
+
+# ----------------------------------------------------------------------------------------
+# Getters
+# ----------------------------------------------------------------------------------------
+def dict_getter(d: Mapping):
+    """Getter over a dict keyed by option name, with or without the leading dash."""
+    norm = {"-" + str(k).lstrip("-"): v for k, v in d.items()}
+    return lambda name, type_, default: norm.get(name)
+
+
+def argv_getter(argv):
+    """Getter over a PETSc-style argument list ``[-name value | -flag ...]`` without PETSc.
+    A name followed by another option name (or nothing) is a flag (value "")."""
+    vals = {}
+    args = list(argv)
+    k = 0
+    while k < len(args):
+        a = args[k]
+        if a.startswith("-") and not _is_number(a):
+            if k + 1 < len(args) and not (args[k + 1].startswith("-") and not _is_number(args[k + 1])):
+                vals["-" + a.lstrip("-")] = args[k + 1]
+                k += 2
+                continue
+            vals["-" + a.lstrip("-")] = ""
+        k += 1
+
+    def get(name, type_, default):
+        if name not in vals:
+            return None
+        v = vals[name]
+        if v == "" and type_ is not bool:
+            o = OPTIONS.get(name)
+            if o is not None:
+                _fail(o, v, "needs a value")
+        return v
+    return get
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def petsc_getter(opts=None):
+    """Getter over PETSc's options database (petsc4py imported here, not at module level).
+    Values are read as strings and checked by parse_value."""
+    if opts is None:
+        from petsc4py import PETSc
+        opts = PETSc.Options()
+
+    def get(name, type_, default):
+        key = name.lstrip("-")
+        if not opts.hasName(key):
+            return None
+        v = opts.getString(key, "")
+        return "" if v is None else v
+    return get
+
+
+# ----------------------------------------------------------------------------------------
+# Help
+# ----------------------------------------------------------------------------------------
+def help_text() -> str:
+    """Every vesflow option with its default, grouped (for `vesflow run -help`)."""
+    lines = ["vesflow options (a command-line option overrides the scene's value of the same knob;",
+             "PETSc's own options such as -ksp_rtol, -ksp_monitor, -pc_type, -log_view work as usual):"]
+    width = max(len(o.name) + 1 + len(o.metavar) for o in REGISTRY) + 2
+    for g in GROUPS:
+        lines.append("")
+        lines.append(f"{g}:")
+        for o in REGISTRY:
+            if o.group != g:
+                continue
+            rng = ""
+            if o.type in (int, float) and any(x is not None for x in (o.gt, o.ge, o.lt, o.le)):
+                rng = "; " + _range_text(o).replace("must be an integer ", "").replace("must be a number ", "")
+            extra = f"; overrides {o.scene_key}" if o.scene_key else ""
+            lines.append(f"  {(o.name + ' ' + o.metavar).ljust(width)}default: {o.shown_default}")
+            lines.append(f"      {o.help}{extra}{rng}")
+    return "\n".join(lines)

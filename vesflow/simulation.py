@@ -1,0 +1,254 @@
+"""A run: scene -> initial state -> time steps (adaptive, with rejection) -> HDF5 frames and checkpoints.
+
+Adaptive stepping (paper 3.7): the error e = max |X(two steps of dt/2) - X(one step of dt)|
+is accepted when e / dt <= E/T (-ves_adapt_tol); the next step is dt * beta (E/T) dt / e
+(k = 1), within [dt_min, dt_max] and at most doubling.  A step is also rejected (dt halved)
+on a GMRES failure, a non-finite result or a collision (paper 3.3).
+"""
+from __future__ import annotations
+
+import sys
+import time as _time
+
+import numpy as np
+
+from . import __version__, collision, sph
+from .errors import ConvergenceError, NumericalFailure
+from .layerpot.evaluator import Settings
+from .operator import VesicleParams
+from .shapes import make_shape
+from .stepper import Physics, Stepper
+from .surface import Surface
+from .timing import Timers
+
+
+def initial_coefficients(scene):
+    """Position coefficients (N, 3, C) of the scene's vesicles."""
+    p = scene.p
+    out = np.empty((scene.n_vesicles, 3, sph.n_coeffs(p)))
+    for k, v in enumerate(scene.vesicles):
+        out[k] = make_shape(v.shape, p, radius=v.radius, center=v.center, rotation=v.rotation,
+                            reduced_volume=v.reduced_volume if v.shape in ("oblate", "prolate", "biconcave") else None,
+                            axes=v.axes)
+    return out
+
+
+def vesicle_params(scene):
+    ves = scene.vesicles
+    return VesicleParams([v.bending_modulus for v in ves], [v.viscosity_contrast for v in ves],
+                         [v.excess_density for v in ves], scene.fluid.viscosity)
+
+
+def physics(scene):
+    flow, args = None, {}
+    if scene.flow is not None:
+        flow = scene.flow.type
+        if flow == "taylor_green":
+            args = {"amplitude": scene.flow.amplitude, "period": scene.periodic_length}
+        elif flow == "poiseuille":
+            args = {"rate": scene.flow.rate, "radius": scene.flow.radius}
+        else:
+            args = {"rate": scene.flow.rate}
+    g = scene.gravity.g if scene.gravity is not None else None
+    R = scene.repulsion.radius if scene.repulsion is not None else 0.0
+    return Physics(flow, args, g, R or 0.0, scene.fluid.viscosity)
+
+
+class Run:
+    """Drives a Stepper over the scene's horizon; writes through an io.OutputWriter (or none)."""
+
+    def __init__(self, scene, opts, writer=None, checkpoint=None, progress=False, monitor=False, log=print):
+        if scene.domain is not None:
+            raise NumericalFailure("periodic domains ([domain]) are not available yet: the spectral Ewald "
+                                   "far field is a later issue; remove [domain] to run in free space")
+        self.scene, self.opts, self.writer = scene, opts, writer
+        self.p = scene.p
+        self.timers = Timers()
+        settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"],
+                            backend=_backend(opts["far"]), fmm_eps=opts["far_tol"])
+        params = vesicle_params(scene)
+        phys = physics(scene)
+        coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
+        self.stepper = Stepper(coeffs, self.p, params, phys, settings, coupling=opts["coupling"],
+                               timers=self.timers)
+        if phys.repulsion_radius > 0:
+            from .repulsion import repulsion_force
+            R = phys.repulsion_radius
+            self.stepper.extra_force = lambda surf, geo: repulsion_force(surf, self.stepper.lp_current, R,
+                                                                         self.stepper.q_force)
+        self.horizon = scene.time.horizon
+        self.every = scene.output.every
+        self.progress, self.monitor, self.log = progress, monitor, log
+        self.counts = {"accepted": 0, "rejected": 0}
+        self.rows = []
+        if checkpoint is None:
+            S = Surface(coeffs, self.p)
+            self.area0, self.volume0 = S.area(), S.volume()
+            self.t, self.dt, self.next_frame, self.n_accepted = 0.0, scene.time.dt, 0.0, 0
+            self.sigma = np.zeros((scene.n_vesicles, sph.n_coeffs(self.p)))
+            self.u = np.zeros_like(coeffs)
+        else:
+            self.area0, self.volume0 = np.asarray(checkpoint["area0"]), np.asarray(checkpoint["volume0"])
+            self.t, self.dt = float(checkpoint["time"]), float(checkpoint["dt"])
+            self.next_frame, self.n_accepted = float(checkpoint["next_frame"]), int(checkpoint["n_accepted"])
+            self.sigma, self.u = np.asarray(checkpoint["sigma"]), np.asarray(checkpoint["u"])
+            if int(checkpoint["has_last"]):
+                from .stepper import Solution
+                self.stepper.last = Solution(self.u.copy(), self.sigma.copy(), 0, 0)
+            self.stepper.time = self.t
+
+    # ------------------------------------------------------------------ one attempted step
+    def _try(self, dt):
+        """Candidate state after dt (adaptive or not) or a rejection reason."""
+        st = self.stepper
+        saved = (st.coeffs.copy(), st.time, st.last)
+        adapt = self.opts["adapt"]
+        try:
+            sol = st.step(dt)
+            its = sol.its
+            err = 0.0
+            if adapt == "doubling":
+                one = st.coeffs.copy()
+                st.coeffs, st.time, st.last = saved[0].copy(), saved[1], saved[2]
+                s1 = st.step(0.5 * dt)
+                s2 = st.step(0.5 * dt)
+                its += s1.its + s2.its
+                sol = s2
+                err = float(np.abs(Tgrid(self.p, st.coeffs - one)).max())
+            elif adapt == "invariants":
+                S = st.surface
+                err = float(max(np.abs(S.area() / self.area0 - 1).max(), np.abs(S.volume() / self.volume0 - 1).max()))
+            if not np.all(np.isfinite(st.coeffs)):
+                raise ConvergenceError("non-finite state", reason="nan", iterations=its)
+        except ConvergenceError as e:
+            st.coeffs, st.time, st.last = saved
+            reason = "nonfinite" if e.reason == "nan" else "ksp"
+            return None, reason, getattr(e, "iterations", 0) or 0, np.inf
+        if self.opts["collision"] and st.surface.n_vesicles > 1 and collision.contacts(st.surface, self.opts["q_near"]) > 0:
+            st.coeffs, st.time, st.last = saved
+            return None, "collision", its, err
+        tol = self.opts["adapt_tol"]
+        if adapt != "none" and err / dt > tol:
+            st.coeffs, st.time, st.last = saved
+            return None, "error_estimate", its, err
+        return sol, "accepted", its, err
+
+    def _next_dt(self, dt, err):
+        o = self.opts
+        if o["adapt"] == "none":
+            return self.scene.time.dt
+        if err <= 0:
+            new = 2.0 * dt
+        else:
+            new = dt * min(2.0, o["adapt_beta"] * o["adapt_tol"] * dt / err)
+        if o["dt_max"] is not None:
+            new = min(new, o["dt_max"])
+        return max(new, o["dt_min"])
+
+    # ------------------------------------------------------------------ the loop
+    def run(self):
+        st = self.stepper
+        t_start = _time.perf_counter()
+        if self.n_accepted == 0 and self.t == 0.0 and self.writer is not None:
+            self._frame()
+        rejects_in_row = 0
+        max_steps = self.opts["ts_max_steps"]
+        while self.t < self.horizon * (1 - 1e-12):
+            if max_steps is not None and self.n_accepted >= max_steps:
+                break
+            dt = min(self.dt, self.horizon - self.t)
+            sol, reason, its, err = self._try(dt)
+            accepted = sol is not None
+            self.rows.append((self.t, dt, int(accepted), its, err, reason))
+            if self.monitor:
+                self.log(f"step {self.counts['accepted'] + self.counts['rejected']:5d} t={self.t:.6g} dt={dt:.3e} its={its} err={err:.2e} {reason}")
+            if accepted:
+                rejects_in_row = 0
+                self.counts["accepted"] += 1
+                self.n_accepted += 1
+                self.t = st.time
+                self.u, self.sigma = sol.u, sol.sigma
+                self._post_step()
+                self.dt = self._next_dt(dt, err)
+                if self.t >= self.next_frame - 1e-12 or self.t >= self.horizon * (1 - 1e-12):
+                    self._frame()
+            else:
+                self.counts["rejected"] += 1
+                rejects_in_row += 1
+                self.dt = 0.5 * dt if reason != "error_estimate" else max(self._next_dt(dt, err), 0.0)
+                if reason == "error_estimate":
+                    self.dt = min(self.dt, 0.9 * dt)
+                if self.dt < self.opts["dt_min"] or rejects_in_row >= self.opts["max_rejects"]:
+                    self._flush_steps()
+                    raise NumericalFailure(
+                        f"step at t = {self.t:.6g} rejected {rejects_in_row} times in a row (last: {reason}, "
+                        f"dt = {dt:.3e}); the last good state is saved" +
+                        (f" in the checkpoint" if self.writer is not None else ""))
+            if self.progress:
+                self._progress(t_start)
+        if self.progress:
+            sys.stderr.write("\n")
+        self._flush_steps()
+        if self.writer is not None:
+            self.writer.write_timings(self.timers.as_dict())
+        return self
+
+    def _post_step(self):
+        st = self.stepper
+        o = self.opts
+        if o["correct"] == "area_volume":
+            from .correction import correct_area_volume
+            with self.timers.stage("other"):
+                st.coeffs, _, _ = correct_area_volume(st.coeffs, self.p, self.area0, self.volume0,
+                                                      tol=o["correct_tol"], max_its=o["correct_max_its"])
+        if o["reparam"]:
+            from .reparam import reparameterize
+            with self.timers.stage("repar"):
+                st.coeffs, _, _, _ = reparameterize(st.coeffs, self.p, dtau_max=o["reparam_dtau_max"],
+                                                    tol=o["reparam_tol"], max_its=o["reparam_max_its"])
+
+    # ------------------------------------------------------------------ output
+    def _frame(self):
+        if self.writer is None:
+            self.next_frame += self.every
+            return
+        p = self.p
+        S = self.stepper.surface
+        Tp = sph.transform(p)
+        kappa = self.stepper.params.kappa
+        self.writer.write_frame(
+            time=self.t, points=S.points(), coefficients=S.coeffs, tension=Tp.synth(self.sigma),
+            area=S.area(), volume=S.volume(), centroid=S.centroid(), bending_energy=S.bending_energy(kappa),
+            velocity=np.moveaxis(Tp.synth(self.u), -2, -1), poles=S.pole_points())
+        while self.next_frame <= self.t + 1e-12:
+            self.next_frame += self.every
+        self._flush_steps()
+        self.writer.write_timings(self.timers.as_dict())
+        self.writer.write_checkpoint(self.checkpoint())
+
+    def checkpoint(self):
+        return {"time": self.t, "dt": self.dt, "coeffs": self.stepper.coeffs, "area0": self.area0,
+                "volume0": self.volume0, "next_frame": self.next_frame, "n_accepted": self.n_accepted,
+                "sigma": self.sigma, "u": self.u, "has_last": int(self.stepper.last is not None)}
+
+    def _flush_steps(self):
+        if self.writer is not None and self.rows:
+            self.writer.write_steps(self.rows)
+        self.rows = []
+
+    def _progress(self, t0):
+        last = self.rows[-1] if self.rows else (0, 0, 0, 0, 0, "")
+        sys.stderr.write(f"\r t = {self.t:9.4f} / {self.horizon:g}  dt = {self.dt:.2e}  its = {last[3]:3d}  "
+                         f"accepted {self.counts['accepted']}  rejected {self.counts['rejected']}  "
+                         f"wall {_time.perf_counter() - t0:7.1f} s ")
+        sys.stderr.flush()
+
+
+def Tgrid(p, c):
+    return sph.transform(p).synth(c)
+
+
+def _backend(name):
+    if name == "ewald":
+        raise NumericalFailure("-ves_far ewald: the spectral Ewald far field is not available yet; use auto, direct or fmm")
+    return name

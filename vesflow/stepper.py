@@ -1,0 +1,165 @@
+"""One semi-implicit step and the first-order stepper (method reference 6; paper 3.6).
+
+    alpha u - sum_j [S_ij(dt B_j[u_j] + f_sigma(sigma_j)) - D_ij u_j]   (sign of D: see operator.py)
+          = u_inf(X^n) + sum_j S_ij (f_b(X_j^n) + f_g,j + f_r,j),      div u = 0,
+    X^{n+1} = X^n + dt u.
+
+The linear system is a petsc4py Mat of type python (operator.StepOperator) solved by KSP
+(GMRES by default, every -ksp_* option honoured); the default preconditioner is the
+block-Jacobi PC context unless the command line names another.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import forces, sph
+from .errors import ConvergenceError
+from .flows import background_velocity
+from .layerpot.evaluator import LayerPotentials, Settings
+from .operator import StepOperator, VesicleParams
+from .surface import Surface
+from .timing import Timers
+
+
+class Physics:
+    """Scene physics for the stepper: background flow, gravity, repulsion radius (0 = off)."""
+
+    def __init__(self, flow=None, flow_args=None, gravity=None, repulsion_radius=0.0, viscosity=1.0):
+        self.flow, self.flow_args = flow, dict(flow_args or {})
+        self.gravity = None if gravity is None else np.asarray(gravity, dtype=float)
+        self.repulsion_radius = float(repulsion_radius)
+        self.viscosity = float(viscosity)
+
+
+class Solution:
+    """Velocity u (N, 3, C) and tension sigma (N, C) coefficients, with the KSP record."""
+
+    def __init__(self, u, sigma, its, reason):
+        self.u, self.sigma, self.its, self.reason = u, sigma, its, reason
+
+
+class Stepper:
+    """Holds the state (position coefficients) and advances it with first-order steps."""
+
+    def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
+                 q_force=None, timers=None, ksp_prefix=None):
+        self.coeffs = np.array(coeffs, dtype=float)
+        self.p = p
+        self.params = params
+        self.physics = physics or Physics(viscosity=params.mu)
+        self.lp_settings = lp_settings or Settings()
+        self.coupling = coupling
+        self.q_force = q_force or 2 * p
+        self.timers = timers or Timers()
+        self.ksp_prefix = ksp_prefix
+        self.time = 0.0
+        self.last = None            # last Solution: initial guess of the next solve
+        self.extra_force = None     # hook: (surface, geometry) -> traction on the force grid (repulsion)
+
+    @property
+    def surface(self):
+        return Surface(self.coeffs, self.p)
+
+    # ------------------------------------------------------------------ pieces of one solve
+    def _setup(self, surface, dt):
+        lp = LayerPotentials(surface, lam=self.params.lam, viscosity=self.params.mu,
+                             settings=self.lp_settings, timers=self.timers)
+        op = StepOperator(surface, self.params, dt, lp, self.q_force, self.coupling)
+        return lp, op
+
+    def explicit_traction(self, surface, geo):
+        """f_b(X^n) + f_g + f_r on the force grid (N, npts, 3)."""
+        f = forces.bending_force(geo, self.params.kappa)
+        if self.physics.gravity is not None and np.any(self.params.drho != 0):
+            f = f + forces.gravity_force(geo, self.params.drho, self.physics.gravity)
+        if self.extra_force is not None:
+            f = f + self.extra_force(surface, geo)
+        return f
+
+    def rhs(self, surface, lp, op):
+        self.timers.start("other")
+        Tp = sph.transform(self.p)
+        X = surface.points()
+        uinf = background_velocity(self.physics.flow, X, **self.physics.flow_args)
+        b1 = Tp.analysis(np.moveaxis(uinf, -1, -2))
+        f = op.coeffs_vec(self.explicit_traction(surface, op.geo))
+        self.timers.stop("other")
+        b1 = b1 + lp.apply(f, None)
+        if self.coupling == "explicit" and self.last is not None and surface.n_vesicles > 1:
+            # inter-vesicle terms of the previous solution moved to the right side
+            fi = op.membrane_force(self.last.u, self.last.sigma)
+            g = -self.last.u if lp.want_double else None
+            b1 = b1 + lp.apply(fi, g) - lp.self_part(fi, g)
+        return op.join(b1, np.zeros((surface.n_vesicles, sph.n_coeffs(self.p))))
+
+    def solve(self, dt, surface=None):
+        """Velocity and tension at the current (or given) configuration for a step dt."""
+        from petsc4py import PETSc
+        surface = self.surface if surface is None else surface
+        lp, op = self._setup(surface, dt)
+        self.lp_current = lp
+        n = surface.n_vesicles * op.block
+        A = PETSc.Mat().createPython([n, n], op, comm=PETSc.COMM_SELF)
+        A.setUp()
+        b = A.createVecRight()
+        x = A.createVecLeft()
+        b.setArray(self.rhs(surface, lp, op))
+        if self.last is not None and self.last.u.shape == (surface.n_vesicles, 3, sph.n_coeffs(self.p)):
+            x.setArray(op.join(self.last.u, self.last.sigma))
+        else:
+            x.set(0.0)
+        ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+        if self.ksp_prefix:
+            ksp.setOptionsPrefix(self.ksp_prefix)
+        ksp.setOperators(A)
+        ksp.setType("gmres")
+        ksp.setTolerances(rtol=1e-8, max_it=1000)
+        ksp.setInitialGuessNonzero(True)
+        pc = ksp.getPC()
+        opts = PETSc.Options(self.ksp_prefix)
+        if not opts.hasName("pc_type"):
+            pc.setType("python")
+            pc.setPythonContext(_default_pc())
+        ksp.setFromOptions()
+        with self.timers.stage("setup"):
+            ksp.setUp()
+        ksp.solve(b, x)
+        reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+        ksp.destroy()
+        A.destroy()
+        if reason < 0:
+            raise ConvergenceError(f"GMRES did not converge: reason {_reason_name(reason)} after {its} iterations",
+                                   reason=reason, iterations=its)
+        u, s = op.split(x.getArray().copy())
+        self.lp_last = lp
+        return Solution(u.copy(), s.copy(), its, reason)
+
+    def velocity(self):
+        """Instantaneous velocity and tension (one solve with dt = 0: no implicit bending)."""
+        return self.solve(0.0)
+
+    def step(self, dt):
+        """One first-order step: solve, then X^{n+1} = X^n + dt u.  Returns the Solution."""
+        sol = self.solve(dt)
+        if not np.all(np.isfinite(sol.u)):
+            raise ConvergenceError("the solve returned NaN or Inf", reason="nan", iterations=sol.its)
+        self.coeffs = self.coeffs + dt * sol.u
+        self.time += dt
+        self.last = sol
+        return sol
+
+
+def _default_pc():
+    from .precond import BlockJacobi
+    return BlockJacobi()
+
+
+def _reason_name(reason):
+    try:
+        from petsc4py import PETSc
+        for k, v in vars(PETSc.KSP.ConvergedReason).items():
+            if v == reason and not k.startswith("_"):
+                return f"{k} ({reason})"
+    except Exception:
+        pass
+    return str(reason)
