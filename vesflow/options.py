@@ -102,6 +102,8 @@ REGISTRY: tuple[Option, ...] = (
        "quadrature", ge=0),
     _O("-ves_far_tol", float, 1e-6, "requested relative accuracy of the fmm / ewald far-field sum",
        "quadrature", gt=0, lt=1),
+    _O("-ves_pc_lag", int, 5, "reuse the block preconditioner's LU factors for this many solves with the "
+       "same dt (1 = refactor every solve)", "solver", ge=1, le=1000),
     _O("-ves_coupling", str, "implicit", "inter-vesicle interactions in the solve (implicit) or "
        "lagged to the right-hand side (explicit: cheaper, less stable)", "solver",
        choices=("implicit", "explicit")),

@@ -13,13 +13,35 @@ from scipy.linalg import lu_factor, lu_solve
 
 
 class _PerVesicle:
-    """Shared machinery: one dense LU per vesicle, factored in setUp."""
+    """Shared machinery: one dense LU per vesicle, factored in setUp.
+
+    The factors may be reused for `lag` solves (option -ves_pc_lag, default 5; 1 = refactor every
+    solve) while dt and the number of vesicles are unchanged: a preconditioner only has to be
+    close to the operator, and the geometry changes little between steps.
+    """
+
+    def __init__(self, lag=None):
+        self.lag = lag
+        self.age = None
+        self.key = None
 
     def setUp(self, pc):
         A, _ = pc.getOperators()
         op = A.getPythonContext()
         self.op = op
+        if self.lag is None:
+            from petsc4py import PETSc
+            self.lag = max(1, PETSc.Options().getInt("ves_pc_lag", 5))
+        key = (op.N, op.p, op.dt)
+        cache = self.__dict__.setdefault("cache", {})
+        if key in cache and cache[key][1] < self.lag:
+            self.lu, age = cache[key]
+            cache[key] = (self.lu, age + 1)
+            return
         self.lu = [lu_factor(B, check_finite=False) for B in self.blocks(op)]
+        if len(cache) >= 3:
+            cache.clear()
+        cache[key] = (self.lu, 1)
 
     def apply(self, pc, x, y):
         xa = x.getArray(readonly=True).reshape(self.op.N, self.op.block)

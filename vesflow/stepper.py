@@ -118,8 +118,10 @@ class Stepper:
         pc = ksp.getPC()
         opts = PETSc.Options(self.ksp_prefix)
         if not opts.hasName("pc_type"):
+            if getattr(self, "_pc_context", None) is None:
+                self._pc_context = _default_pc()
             pc.setType("python")
-            pc.setPythonContext(_default_pc())
+            pc.setPythonContext(self._pc_context)
         ksp.setFromOptions()
         with self.timers.stage("setup"):
             ksp.setUp()
