@@ -32,7 +32,7 @@ class _PerVesicle:
         if self.lag is None:
             from petsc4py import PETSc
             self.lag = max(1, PETSc.Options().getInt("ves_pc_lag", 5))
-        key = (op.N, op.p, op.dt)
+        key = (op.N, op.p, int(np.round(np.log2(op.dt))) if op.dt > 0 else None)   # dt within a factor ~1.4
         cache = self.__dict__.setdefault("cache", {})
         if key in cache and cache[key][1] < self.lag:
             self.lu, age = cache[key]

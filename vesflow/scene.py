@@ -71,7 +71,7 @@ rate = 1.0
 p = 8
 
 [time]
-horizon = 8.0
+horizon = 1.0
 dt = 0.05
 
 [repulsion]
@@ -1406,29 +1406,38 @@ def _random_packing(ves0, origin, box, periodic, gap, rng, key, phi, rotate=True
     R = rot.copy()
     ell = rb.copy()                       # length scale of a rotation
     period = box[0] if periodic else None
-    max_iter = max_iter or 4000
+    # grow the shapes from an easy fraction to their size, removing overlaps on the way
+    sigma = 1.0
+    grow, stage_sweeps, sweeps, stall, best = 0.02, 0, 0, 0, np.inf
+    max_sweeps = max_iter or 3000
     target = 1.0 + 1e-3
-    stall = 0
-    best = np.inf
-    for it in range(max_iter):
+    while True:
+        encs, rbs = enc * sigma, rb * sigma
         if not periodic:
-            h = np.sqrt(np.einsum("nij,nj,nij->ni", R, enc ** 2, R))   # half extents along x, y, z
+            h = np.sqrt(np.einsum("nij,nj,nij->ni", R, encs ** 2, R))   # half extents along x, y, z
             c = np.clip(c, origin + h, origin + box - h)
-        i, j, shift = _candidate_pairs(c, rb, period)
-        if len(i) == 0:
-            break
-        M = _ellipsoid_matrices(R, enc)
+        i, j, shift = _candidate_pairs(c, rbs, period)
+        M = _ellipsoid_matrices(R, encs)
         r = c[j] + shift - c[i]
-        mu, lam, y = _pw(r, M[i], M[j])
-        bad = mu < 1.0
-        nbad = int(bad.sum())
-        if nbad == 0:
-            break
-        worst = float(1.0 - mu.min())
-        if worst < best * 0.999:
-            best, stall = worst, 0
-        else:
-            stall += 1
+        mu, lam, y = _pw(r, M[i], M[j]) if len(i) else (np.zeros(0), np.zeros(0), np.zeros((0, 3)))
+        if not np.any(mu < 1.0):
+            if sigma >= 1.0:
+                break
+            grow = min(0.05, grow * 1.5) if stage_sweeps <= 2 else (max(0.002, grow / 2) if stage_sweeps > 20 else grow)
+            sigma, stage_sweeps = min(1.0, sigma * (1.0 + grow)), 0
+            continue
+        sweeps += 1
+        stage_sweeps += 1
+        if sweeps > max_sweeps:
+            _fail(key, f"random packing of {n} vesicles did not converge (reached {_num(sigma)} of the "
+                       f"vesicle size after {max_sweeps} sweeps); lower volume_fraction or gap, or use a "
+                       "regular lattice (count + spacing)", phi)
+        if sigma >= 1.0:
+            worst = float(1.0 - mu.min())
+            if worst < best * 0.999:
+                best, stall = worst, 0
+            else:
+                stall += 1
         sel = mu < target
         i, j, r, mu, lam, y = i[sel], j[sel], r[sel], mu[sel], lam[sel], y[sel]
         lm = lam[:, None]
@@ -1455,15 +1464,12 @@ def _random_packing(ves0, origin, box, periodic, gap, rng, key, phi, rotate=True
         relax = 1.0 / np.sqrt(np.maximum(cnt, 1.0))[:, None]
         dw = np.clip(dw * relax, -0.3, 0.3)
         c = c + dc * relax
-        if stall > 20:                    # jiggle to leave a jammed state
+        if stall > 50:                    # jiggle to leave a jammed state
             c += rng.normal(scale=0.02, size=(n, 3)) * ell[:, None] * (cnt > 0)[:, None]
             stall = 0
         R = _rotvec_matrices(dw) @ R
         if periodic:
             c = origin + np.mod(c - origin, box)
-    else:
-        _fail(key, f"random packing of {n} vesicles did not converge (worst overlap {best:.2g} of the size "
-                   f"after {max_iter} sweeps); lower volume_fraction or gap, or use a regular lattice "
-                   "(count + spacing)", phi)
+    _random_packing.sweeps = sweeps
     eul = [_euler_from_matrix(Rk) for Rk in R]
     return c, eul
