@@ -94,16 +94,18 @@ def main(argv=None):
 
     backends = [("direct", None)] + [("fmm", e) for e in args.eps]
     names = ["direct"] + [f"fmm eps={e:g}" for e in args.eps]
+    threads = far._stokes.max_threads()
+    used = {"direct": threads, "fmm": 1}            # the fmm3dpy wheel is serial
     M, Q = 2 * args.p * (args.p + 1), 2 * args.q * (args.q + 1)
     print(f"# far field, {args.layer} layer, p = {args.p} (M = {M} targets/vesicle), "
-          f"q = {args.q} ({Q} sources/vesicle), OMP_NUM_THREADS = {os.environ.get('OMP_NUM_THREADS', 'unset')}, "
-          f"{os.cpu_count()} cpus")
+          f"q = {args.q} ({Q} sources/vesicle), {threads} OpenMP threads, {os.cpu_count()} cpus")
     print(f"# load average at start: {_loadavg()}")
-    print("# times in seconds per evaluation (set-up of FarField in brackets); err = max|fmm - direct| / max|direct|")
-    header = f"{'N':>5} {'targets':>8} {'sources':>8} " + " ".join(f"{n:>24}" for n in names) + "  errors"
-    print(header)
-    times = {n: [] for n in names}
-    sizes_done = {n: [] for n in names}
+    print("# seconds per evaluation: wall / cpu (process CPU time; 'ideal' = cpu / threads used,")
+    print("# the wall time on an otherwise idle machine); [set-up of FarField]; err = max|fmm - direct| / max|direct|")
+    print(f"{'N':>5} {'targets':>8} {'sources':>8} " + " ".join(f"{n:>26}" for n in names) + "  errors")
+    wall = {n: [] for n in names}
+    ideal = {n: [] for n in names}
+    done = {n: [] for n in names}
     skipped = []
     t_start = time.perf_counter()
     for nves in args.sizes:
@@ -113,68 +115,70 @@ def main(argv=None):
         ref = None
         errs = []
         for (backend, eps), name in zip(backends, names):
-            prev_n, prev_t = (sizes_done[name][-1], times[name][-1]) if times[name] else (None, None)
-            if prev_n is not None:
-                expo = 2.0 if backend == "direct" else 1.2
-                pred = prev_t * (nves / prev_n) ** expo
+            if done[name]:
+                pred = wall[name][-1] * (nves / done[name][-1]) ** (2.0 if backend == "direct" else 1.2)
                 if pred > args.max_seconds or time.perf_counter() - t_start + pred > args.budget:
-                    row += f"{'skipped (~%.0f s)' % pred:>24} "
+                    row += f"{'skipped (~%.0f s)' % pred:>26} "
                     skipped.append((nves, name, pred))
                     continue
             t0 = time.perf_counter()
             ff = far.FarField(src, src_id, trg, trg_id, backend=backend, eps=eps or far.DEFAULT_EPS)
             t_setup = time.perf_counter() - t0
-            best = np.inf
-            for k in range(args.repeat):
-                t0 = time.perf_counter()
+            best, best_cpu = np.inf, np.inf
+            for _ in range(args.repeat):
+                t0, c0 = time.perf_counter(), time.process_time()
                 u = ff.evaluate(**dens)
-                dt = time.perf_counter() - t0
-                best = min(best, dt)
+                dt, dc = time.perf_counter() - t0, time.process_time() - c0
+                best, best_cpu = min(best, dt), min(best_cpu, dc)
                 if dt > 5.0:
                     break
-            times[name].append(best)
-            sizes_done[name].append(nves)
-            row += f"{'%.4g [%.2g]' % (best, t_setup):>24} "
+            wall[name].append(best)
+            ideal[name].append(best_cpu / used[backend])
+            done[name].append(nves)
+            row += f"{'%.3g / %.3g [%.2g]' % (best, best_cpu, t_setup):>26} "
             if backend == "direct":
                 ref = u
             elif ref is not None:
                 errs.append(f"{np.abs(u - ref).max() / np.abs(ref).max():.1e}")
         print(row + " " + " ".join(errs), flush=True)
-    print("# fitted growth exponent t ~ N^a (all measured sizes; sizes >= 32), and the cost constants")
-    threads = far._stokes.max_threads()
+
+    print("# fitted growth exponent t ~ N^a of the wall / ideal times (all sizes; sizes >= 32), cost constants")
     for (backend, eps), name in zip(backends, names):
-        ns, ts = np.array(sizes_done[name], float), np.array(times[name])
+        ns = np.array(done[name], float)
         if ns.size == 0:
             continue
+        tw, ti = np.array(wall[name]), np.array(ideal[name])
         big = ns >= 32
-        line = f"#   {name:>16}: a = {fit_exponent(ns, ts):.2f}; a(N>=32) = {fit_exponent(ns[big], ts[big]):.2f}; "
+        line = (f"#   {name:>14}: a = {fit_exponent(ns, tw):.2f} / {fit_exponent(ns, ti):.2f}; "
+                f"a(N>=32) = {fit_exponent(ns[big], tw[big]):.2f} / {fit_exponent(ns[big], ti[big]):.2f}; ")
         if backend == "direct":
-            c = ts[-1] * threads / (ns[-1] ** 2 * M * Q)
-            line += f"{c * 1e9:.2f} ns per pair per thread (largest N, {threads} threads)"
+            c = ti[-1] * threads / (ns[-1] ** 2 * M * Q)
+            line += f"{c * 1e9:.2f} ns CPU per pair (far.py model: {far.DIRECT_SECONDS_PER_PAIR * 1e9:.2f})"
         else:
-            c = ts[-1] / (ns[-1] * (M + Q))
-            line += f"{c * 1e6:.0f} us per point (largest N; model constant of far.py: " \
-                    f"{far.predicted_seconds(Q, M, eps, 1)[1] / (M + Q) * 1e6:.0f} us)"
+            c = ti[-1] / (ns[-1] * (M + Q))
+            model = far.predicted_seconds(Q, M, eps, 1)[1] / (M + Q)
+            line += f"{c * 1e6:.0f} us CPU per point (far.py model: {model * 1e6:.0f})"
         print(line)
-    # crossover of the fitted power laws (largest sizes) for this p, q
-    if len(sizes_done["direct"]) >= 2:
-        for (backend, eps), name in list(zip(backends, names))[1:]:
-            if len(sizes_done[name]) < 2:
-                continue
-            nd, td = np.array(sizes_done["direct"], float), np.array(times["direct"])
-            nf, tf = np.array(sizes_done[name], float), np.array(times[name])
-            ad, af = fit_exponent(nd[-3:], td[-3:]), fit_exponent(nf[-3:], tf[-3:])
-            if ad > af:
-                ncross = np.exp((np.log(tf[-1]) - af * np.log(nf[-1]) - np.log(td[-1]) + ad * np.log(nd[-1])) / (ad - af))
-                txt = f"{ncross:.0f}" if ncross < 1e5 else "> 1e5"
-                print(f"# crossover direct / {name}: N ~ {txt} vesicles (fits over the 3 largest sizes)")
-    nmodel = next((n for n in range(1, 100000)
-                   if far.choose_backend(n * Q, n * M, "auto", far.DEFAULT_EPS) == "fmm"), None)
-    print(f"# far.py 'auto' (eps {far.DEFAULT_EPS:g}, {threads} threads) switches to the FMM at N = {nmodel}")
+    # crossover of power laws fitted to the ideal times of the 3 largest sizes
+    nd = np.array(done["direct"], float)
+    for (backend, eps), name in list(zip(backends, names))[1:]:
+        nf = np.array(done[name], float)
+        if nd.size < 2 or nf.size < 2:
+            continue
+        td, tf = np.array(ideal["direct"]), np.array(ideal[name])
+        ad, af = fit_exponent(nd[-3:], td[-3:]), fit_exponent(nf[-3:], tf[-3:])
+        if ad > af:
+            lnc = (np.log(tf[-1]) - af * np.log(nf[-1]) - np.log(td[-1]) + ad * np.log(nd[-1])) / (ad - af)
+            txt = f"{np.exp(lnc):.0f}" if lnc < np.log(1e5) else "> 1e5"
+            print(f"# crossover direct ({threads} threads) / {name}, ideal times: N ~ {txt} vesicles")
+    for eps in args.eps:
+        nmodel = next((n for n in range(1, 100000)
+                       if far.choose_backend(n * Q, n * M, "auto", eps) == "fmm"), None)
+        print(f"# far.py 'auto' at eps {eps:g} with {threads} threads switches to the FMM at N = {nmodel}")
     for nves, name, pred in skipped:
-        print(f"# skipped N = {nves} {name}: predicted {pred:.0f} s per evaluation > --max-seconds {args.max_seconds:g}")
+        print(f"# skipped N = {nves} {name}: predicted {pred:.0f} s (limits: --max-seconds "
+              f"{args.max_seconds:g} per case, --budget {args.budget:g} in total)")
     print(f"# load average at end: {_loadavg()}; total benchmark time {time.perf_counter() - t_start:.0f} s")
-
 
 if __name__ == "__main__":
     main()

@@ -61,7 +61,7 @@ if [ -L "$ROOT/.venv" ] || [ ! -e "$ROOT/.venv" ]; then
 fi
 src_hash="$(cat "$ROOT"/setup.py "$ROOT"/pyproject.toml "$ROOT"/vesflow/_kernels/*.pyx 2>/dev/null | sha256sum | cut -c1-16)"
 stamp="$ROOT/build/.kernels-$src_hash"
-where="$("$ENV_DIR/bin/python" -c 'import vesflow, os; print(os.path.dirname(os.path.dirname(vesflow.__file__)))' 2>/dev/null || true)"
+where="$(cd / && "$ENV_DIR/bin/python" -c 'import vesflow, os; print(os.path.dirname(os.path.dirname(vesflow.__file__)))' 2>/dev/null || true)"  # from /: not the cwd copy
 if [ "$where" != "$ROOT" ] || [ ! -f "$stamp" ]; then
   say "building the kernels and installing vesflow from $ROOT"
   (cd "$ROOT" && PATH="$ENV_DIR/bin:$PATH" "$ENV_DIR/bin/pip" install -q --no-build-isolation --no-deps -e .)

@@ -1239,7 +1239,7 @@ def _candidate_pairs(c, rb, period):
     return i.astype(int), j.astype(int), shift
 
 
-def _pw(r, MA, MB, iters=55):
+def _pw(r, MA, MB, iters=44):
     """Perram-Wertheim contact function of ellipsoids {x : x^T MA^-1 x <= 1} and the same with MB
     around r (MA = R diag(a^2) R^T).  Returns mu (both scaled by mu they touch: mu < 1 overlap),
     the optimal lambda and y = C(lambda)^-1 r for the derivatives."""
@@ -1406,38 +1406,28 @@ def _random_packing(ves0, origin, box, periodic, gap, rng, key, phi, rotate=True
     R = rot.copy()
     ell = rb.copy()                       # length scale of a rotation
     period = box[0] if periodic else None
-    # grow the shapes from an easy fraction to their size, removing overlaps on the way
-    sigma = 1.0
-    grow, stage_sweeps, sweeps, stall, best = 0.02, 0, 0, 0, np.inf
-    max_sweeps = max_iter or 3000
+    max_sweeps = max_iter or 1500
     target = 1.0 + 1e-3
+    sweeps, stall, best, fewest, since_fewest = 0, 0, np.inf, np.inf, 0
     while True:
-        encs, rbs = enc * sigma, rb * sigma
         if not periodic:
-            h = np.sqrt(np.einsum("nij,nj,nij->ni", R, encs ** 2, R))   # half extents along x, y, z
+            h = np.sqrt(np.einsum("nij,nj,nij->ni", R, enc ** 2, R))   # half extents along x, y, z
             c = np.clip(c, origin + h, origin + box - h)
-        i, j, shift = _candidate_pairs(c, rbs, period)
-        M = _ellipsoid_matrices(R, encs)
+        i, j, shift = _candidate_pairs(c, rb, period)
+        M = _ellipsoid_matrices(R, enc)
         r = c[j] + shift - c[i]
         mu, lam, y = _pw(r, M[i], M[j]) if len(i) else (np.zeros(0), np.zeros(0), np.zeros((0, 3)))
-        if not np.any(mu < 1.0):
-            if sigma >= 1.0:
-                break
-            grow = min(0.05, grow * 1.5) if stage_sweeps <= 2 else (max(0.002, grow / 2) if stage_sweeps > 20 else grow)
-            sigma, stage_sweeps = min(1.0, sigma * (1.0 + grow)), 0
-            continue
+        nbad = int(np.sum(mu < 1.0))
+        if nbad == 0:
+            break
         sweeps += 1
-        stage_sweeps += 1
-        if sweeps > max_sweeps:
-            _fail(key, f"random packing of {n} vesicles did not converge (reached {_num(sigma)} of the "
-                       f"vesicle size after {max_sweeps} sweeps); lower volume_fraction or gap, or use a "
-                       "regular lattice (count + spacing)", phi)
-        if sigma >= 1.0:
-            worst = float(1.0 - mu.min())
-            if worst < best * 0.999:
-                best, stall = worst, 0
-            else:
-                stall += 1
+        fewest, since_fewest = (nbad, 0) if nbad < fewest else (fewest, since_fewest + 1)
+        if sweeps > max_sweeps or since_fewest > 400:
+            _fail(key, f"random packing of {n} vesicles did not converge ({nbad} overlapping pairs left after "
+                       f"{sweeps} sweeps); lower volume_fraction or gap, or use a regular lattice "
+                       "(count + spacing)", phi)
+        worst = float(1.0 - mu.min())
+        best, stall = (worst, 0) if worst < best * 0.999 else (best, stall + 1)
         sel = mu < target
         i, j, r, mu, lam, y = i[sel], j[sel], r[sel], mu[sel], lam[sel], y[sel]
         lm = lam[:, None]
@@ -1461,10 +1451,10 @@ def _random_packing(ves0, origin, box, periodic, gap, rng, key, phi, rotate=True
         np.add.at(dw, j, step * wj[:, None] * g_wj)
         np.add.at(cnt, i, 1.0)
         np.add.at(cnt, j, 1.0)
-        relax = 1.0 / np.sqrt(np.maximum(cnt, 1.0))[:, None]
+        relax = 1.0 / np.sqrt(np.maximum(cnt, 1.0))[:, None]             # Jacobi: damp shared moves
         dw = np.clip(dw * relax, -0.3, 0.3)
         c = c + dc * relax
-        if stall > 50:                    # jiggle to leave a jammed state
+        if stall > 20:                    # jiggle the overlapping ones to leave a jammed state
             c += rng.normal(scale=0.02, size=(n, 3)) * ell[:, None] * (cnt > 0)[:, None]
             stall = 0
         R = _rotvec_matrices(dw) @ R

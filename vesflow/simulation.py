@@ -13,6 +13,8 @@ import time as _time
 import numpy as np
 
 from . import __version__, collision, sph
+from .correction import correct_area_volume
+from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
 from .layerpot.evaluator import Settings
 from .operator import VesicleParams
@@ -197,12 +199,10 @@ class Run:
         st = self.stepper
         o = self.opts
         if o["correct"] == "area_volume":
-            correct_area_volume = _optional("correction", "correct_area_volume", "-ves_correct area_volume")
             with self.timers.stage("other"):
                 st.coeffs, _, _ = correct_area_volume(st.coeffs, self.p, self.area0, self.volume0,
                                                       tol=o["correct_tol"], max_its=o["correct_max_its"])
         if o["reparam"]:
-            reparameterize = _optional("reparam", "reparameterize", "-ves_reparam")
             with self.timers.stage("repar"):
                 st.coeffs, _, _, _ = reparameterize(st.coeffs, self.p, dtau_max=o["reparam_dtau_max"],
                                                     tol=o["reparam_tol"], max_its=o["reparam_max_its"])
@@ -252,13 +252,3 @@ def _backend(name):
     if name == "ewald":
         raise NumericalFailure("-ves_far ewald: the spectral Ewald far field is not available yet; use auto, direct or fmm")
     return name
-
-
-def _optional(module, name, option):
-    """A long-time correction module, or a one-line error naming the option that asked for it."""
-    import importlib
-    from .errors import OptionError
-    try:
-        return getattr(importlib.import_module(f"vesflow.{module}"), name)
-    except (ImportError, AttributeError):
-        raise OptionError(f"{option}: not available in this version (issue 5 is open); leave it off") from None

@@ -1,0 +1,86 @@
+"""Area and volume correction after a time step (paper 3.4, eq. 3.20; DESIGN 7).
+
+Each vesicle is moved along psi n with psi = 2 alpha H - beta.  With the sign convention of
+`vesflow.surface` (outward n, H = -1/R on a sphere) the first variations of area and volume
+under a displacement dX are
+
+    dA = -int 2 H (n . dX) dA,        dV = int (n . dX) dA,
+
+so for dX = psi n the 2x2 system (3.20) for (alpha, beta) reads
+
+    [ -4 int H^2     2 int H ] [alpha]   [A0 - A]
+    [  2 int H      -A       ] [beta ] = [V0 - V].
+
+The displacement is formed on the upsampled q-grid and projected to degree p (the
+coefficients can only hold its degree-p part), and the matrix is assembled with the
+projected displacements P(2 H n), P(-n) in place of 2 H n, -n: this is (3.20) for the move
+actually applied (identical when psi n is resolved at degree p), which keeps Newton's
+quadratic convergence.  alpha, beta are scaled by R^2 and R (R = sqrt(A / 4 pi)) and the
+rows by A and V so that the 2x2 systems are dimensionless.  A sphere (H constant) makes
+the system singular: the pseudo-inverse then gives the least-squares move.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import sph
+from .surface import Geometry
+
+
+def _area_volume(geo):
+    """Area and volume with the quadrature of Surface.area()/volume()."""
+    A = geo.dA.sum(axis=-1)
+    V = geo.integrate(np.einsum("...k,...k->...", geo.X, geo.normal)) / 3.0
+    return A, V
+
+
+def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
+    """Newton iterations on (3.20) restoring area A0 and volume V0 of every vesicle.
+
+    coeffs (N, 3, C) (or (3, C)); area0, volume0 scalars or (N,).  Iterates until both
+    relative errors |A - A0| / A0, |V - V0| / V0 are below tol (per vesicle; converged
+    vesicles are left alone) or max_its corrections were applied.  Area and volume are
+    measured on the q-grid (q = 2p by default, as Surface.area()/volume()).
+
+    Returns (new_coeffs, iterations, rel_errors): the corrected coefficients (same shape as
+    coeffs), the number of corrections applied (int) and the final relative errors (N, 2)
+    (area, volume); (2,) for a (3, C) input.
+    """
+    c = np.array(coeffs, dtype=float)
+    single = c.ndim == 2
+    if single:
+        c = c[None]
+    q = 2 * p if q is None else q
+    N = c.shape[0]
+    A0 = np.broadcast_to(np.asarray(area0, dtype=float), (N,))
+    V0 = np.broadcast_to(np.asarray(volume0, dtype=float), (N,))
+    T = sph.transform(p, q)
+    its = 0
+    act = np.arange(N)
+    errs = np.zeros((N, 2))
+    geo = Geometry(c, p, q)
+    while True:
+        A, V = _area_volume(geo)
+        errs[act, 0] = np.abs(A - A0[act]) / A0[act]
+        errs[act, 1] = np.abs(V - V0[act]) / V0[act]
+        keep = errs[act].max(axis=1) >= tol
+        if not keep.any() or its >= max_its:
+            break
+        sub = np.nonzero(keep)[0]
+        act = act[sub]
+        A, V = A[sub], V[sub]
+        H, n, dA = geo.H[sub], geo.normal[sub], geo.dA[sub]
+        R = np.sqrt(A / (4.0 * np.pi))
+        # basis moves psi_1 n = 2 R^2 H n (alpha = a R^2) and psi_2 n = -R n (beta = b R)
+        basis = np.stack([(2.0 * R[:, None] ** 2 * H)[..., None] * n, -R[:, None, None] * n], axis=1)  # (n,2,M,3)
+        bc = T.analysis(np.moveaxis(basis, -1, -2))                     # (n, 2, 3, C)
+        dn = np.einsum("vbkm,vmk->vbm", T.synth(bc), n)                  # n . P(basis) on the q-grid
+        J = np.empty((len(act), 2, 2))
+        J[:, 0, :] = -2.0 * np.einsum("vbm,vm->vb", dn, H * dA) / A[:, None]
+        J[:, 1, :] = np.einsum("vbm,vm->vb", dn, dA) / V[:, None]
+        rhs = np.stack([(A0[act] - A) / A, (V0[act] - V) / V], axis=1)
+        ab = np.einsum("vij,vj->vi", np.linalg.pinv(J, rcond=1e-12), rhs)
+        c[act] += np.einsum("vb,vbkc->vkc", ab, bc)
+        its += 1
+        geo = Geometry(c[act], p, q)
+    return (c[0], its, errs[0]) if single else (c, its, errs)
