@@ -314,7 +314,7 @@ def rotation_y_points(beta, theta, phi):
     return np.arccos(np.clip(zr, -1.0, 1.0)), np.arctan2(y, xr)
 
 
-@lru_cache(maxsize=32)
+@lru_cache(maxsize=4096)   # 2 (p+1) tilts per operator assembly; must not thrash
 def wigner_blocks(p, beta):
     """Rotation of degree-p coefficients by a tilt R_y(beta), per degree n.
 

@@ -136,8 +136,12 @@ def line_points(projection, h):
 
 
 def interpolation_weights(projection, h):
-    """Lagrange weights (P, L+1) from the nodes (0, h..2h) to the target's distance |d|."""
+    """Lagrange weights (P, L+1) from the nodes (0, h..2h) to the target's distance |d|.
+
+    Scaled by 2h the nodes are the same for every target, (0, s_l / 2): one vectorized call.
+    """
     _, nodes = line_points(projection, h)
+    if not len(nodes):
+        return np.zeros((0, L_POINTS + 1))
     d = np.abs(projection.signed_distance)
-    return np.stack([lagrange_weights(nodes[i] / nodes[i, -1], [d[i] / nodes[i, -1]])[0] for i in range(len(d))]) \
-        if len(d) else np.zeros((0, L_POINTS + 1))
+    return lagrange_weights(nodes[0] / nodes[0, -1], d / nodes[:, -1])
