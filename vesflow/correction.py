@@ -17,7 +17,7 @@ projected displacements P(2 H n), P(-n) in place of 2 H n, -n: this is (3.20) fo
 actually applied (identical when psi n is resolved at degree p), which keeps Newton's
 quadratic convergence.  alpha, beta are scaled by R^2 and R (R = sqrt(A / 4 pi)) and the
 rows by A and V so that the 2x2 systems are dimensionless.  A sphere (H constant) makes
-the system singular: the pseudo-inverse then gives the least-squares move.
+the system singular: the pseudo-inverse (rcond 1e-6) then gives the least-squares move.
 """
 from __future__ import annotations
 
@@ -58,8 +58,19 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
     its = 0
     act = np.arange(N)
     errs = np.zeros((N, 2))
+    # a sphere (reduced volume 1) cannot trade area for volume: (3.20) is singular there and
+    # Newton turns round-off into shape noise; restore its volume by a dilation instead
+    sphere = 6.0 * np.sqrt(np.pi) * V0 / A0 ** 1.5 > 1.0 - 1e-6
+    if sphere.any():
+        V = _area_volume(Geometry(c[sphere], p, q))[1]
+        c[sphere, :, 1:] *= (V0[sphere] / V)[:, None, None] ** (1.0 / 3.0)   # about the mean point
+        act = np.nonzero(~sphere)[0]
     geo = Geometry(c, p, q)
-    while True:
+    if sphere.any():
+        A, V = _area_volume(geo)
+        errs[:, 0], errs[:, 1] = np.abs(A - A0) / A0, np.abs(V - V0) / V0
+        geo = Geometry(c[act], p, q)
+    while len(act):
         A, V = _area_volume(geo)
         errs[act, 0] = np.abs(A - A0[act]) / A0[act]
         errs[act, 1] = np.abs(V - V0[act]) / V0[act]
@@ -79,7 +90,9 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
         J[:, 0, :] = -2.0 * np.einsum("vbm,vm->vb", dn, H * dA) / A[:, None]
         J[:, 1, :] = np.einsum("vbm,vm->vb", dn, dA) / V[:, None]
         rhs = np.stack([(A0[act] - A) / A, (V0[act] - V) / V], axis=1)
-        ab = np.einsum("vij,vj->vi", np.linalg.pinv(J, rcond=1e-12), rhs)
+        # rcond 1e-6: near a sphere the two moves are almost parallel (J nearly singular); a tiny
+        # singular value would turn a 1e-10 residual into an O(1) move (measured: blow-up of a sphere)
+        ab = np.einsum("vij,vj->vi", np.linalg.pinv(J, rcond=1e-6), rhs)
         c[act] += np.einsum("vb,vbkc->vkc", ab, bc)
         its += 1
         geo = Geometry(c[act], p, q)
