@@ -182,6 +182,9 @@ class Run:
                     self.dt = min(self.dt, 0.9 * dt)
                 if self.dt < self.opts["dt_min"] or rejects_in_row >= self.opts["max_rejects"]:
                     self._flush_steps()
+                    if self.writer is not None:      # the last good (accepted) state, for --restart
+                        self.writer.write_timings(self.timers.as_dict())
+                        self.writer.write_checkpoint(self.checkpoint())
                     raise NumericalFailure(
                         f"step at t = {self.t:.6g} rejected {rejects_in_row} times in a row (last: {reason}, "
                         f"dt = {dt:.3e}); the last good state is saved" +
