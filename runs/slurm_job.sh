@@ -1,12 +1,47 @@
 #!/bin/bash
-# SLURM template: one vesflow run under MPI with PETSc options.  Edit the #SBATCH lines.
+# SLURM job template for one vesflow run.  Submit from the clone (after `make test` there):
+#
+#     sbatch runs/slurm_job.sh                                   # runs/shear_pair.toml
+#     SCENE=runs/sedimentation.toml sbatch runs/slurm_job.sh
+#     OUT=out/shear_pair-1234.h5 sbatch runs/slurm_job.sh        # continue that run (restart)
+#     jid=$(sbatch --parsable runs/slurm_job.sh)                 # a chain of jobs for runs longer
+#     OUT=out/shear_pair-$jid.h5 sbatch --dependency=afterany:$jid runs/slurm_job.sh   # than --time
+#
+# If $OUT exists and holds a checkpoint the job continues it (vesflow run --restart, with the
+# options stored in the file, the new ones on top); otherwise it starts $SCENE.  A job killed at
+# its time limit loses only the steps since the last checkpoint (-ves_checkpoint_every,
+# default: every frame).  Extra options: OPTS (options file), EXTRA (more options).
+#
+# One process, OpenMP threads in the kernels: vesflow does not distribute vesicles over MPI
+# ranks yet and refuses to run under more than one (exit status 2).  Edit the #SBATCH lines.
 #SBATCH --job-name=vesflow
 #SBATCH --nodes=1
-#SBATCH --ntasks-per-node=16
+#SBATCH --ntasks=1
+#SBATCH --cpus-per-task=16
 #SBATCH --time=24:00:00
 #SBATCH --output=vesflow-%j.log
 set -euo pipefail
+cd "${SLURM_SUBMIT_DIR:-.}"
+
+# Site modules, if vesflow's environment was built against them (uncomment / adapt):
+# module load gcc/12 openmpi/4.1
+# The environment of `make test` (PETSc, petsc4py, the Cython kernels):
+source .venv/bin/activate
+
 SCENE=${SCENE:-runs/shear_pair.toml}
-OUT=${OUT:-out/$(basename "$SCENE" .toml)-$SLURM_JOB_ID.h5}
-export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
-srun .venv/bin/vesflow run "$SCENE" -o "$OUT" -options_file runs/production.opts -log_view
+OUT=${OUT:-out/$(basename "$SCENE" .toml)-${SLURM_JOB_ID:-local}.h5}
+OPTS=${OPTS:-runs/production.opts}
+EXTRA=${EXTRA:-}
+export OMP_NUM_THREADS=${SLURM_CPUS_PER_TASK:-${OMP_NUM_THREADS:-1}}
+export OMP_PROC_BIND=${OMP_PROC_BIND:-close} OMP_PLACES=${OMP_PLACES:-cores}
+mkdir -p "$(dirname "$OUT")"
+
+# PETSc options go on the command line as usual (-ksp_*, -pc_type, -log_view ...).
+if [ -f "$OUT" ] && python -c "import sys, vesflow.io as io; io.read_checkpoint(sys.argv[1])" "$OUT" 2>/dev/null; then
+    echo "continuing $OUT"
+    # shellcheck disable=SC2086
+    srun --ntasks=1 --cpus-per-task="$OMP_NUM_THREADS" vesflow run --restart "$OUT" $EXTRA -log_view
+else
+    # shellcheck disable=SC2086
+    srun --ntasks=1 --cpus-per-task="$OMP_NUM_THREADS" vesflow run "$SCENE" -o "$OUT" -options_file "$OPTS" $EXTRA -log_view
+fi

@@ -1,29 +1,146 @@
-"""Cost model of a scene for `vesflow check` (paper Table 2): memory and time per GMRES iteration.
+"""Cost model of a scene for `vesflow check` (paper Table 2): memory, and time per GMRES
+iteration and per solve set-up.
 
-The constants are this machine's measured rates (docs/results.md): a dense GEMV of the self
-operators streams memory at about BANDWIDTH bytes/s and a direct Stokeslet pair costs PAIR_S.
+What is stored (float64, 8 bytes):
+    self operators        N x (3C)^2            (x 2 with the double layer: S and D)
+    block preconditioner  N x (4C)^2 per cached dt octave (the LU factors; up to 3 are cached)
+    far/near sources      N x Mq x 7            (points, weights, normal x weight)
+    near pairs            P x (C + 8 x 3 + 9)   (basis row, line points, weights)
+with C = (p+1)^2 - 1 coefficients per scalar, M = 2p(p+1) grid points, Mq = 2q(q+1) on the
+upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) pairs.
+
+Time per GMRES iteration: the membrane forces and transforms (per vesicle), the self
+operators (one GEMV each: they are streamed from memory), the far field (direct sum over the
+(N M) x ((N-1) Mq) pairs, or the FMM, as `-ves_far auto` would choose: vesflow.layerpot.far's
+own model), and the near correction (9 Mq kernel evaluations per near pair).  The constants
+below were measured on the development machine (2 cores; docs/results.md); expect the
+right order of magnitude, not the digits.
 """
 from __future__ import annotations
 
-BANDWIDTH = 5e9        # bytes/s, measured copy bandwidth order of magnitude (2 cores)
-PAIR_S = 4e-9          # seconds per Stokeslet source-target pair (Cython direct, 2 threads)
-TRANSFORM_S = 2e-9     # seconds per flop-ish unit of the spherical-harmonic transforms
+from dataclasses import dataclass
+
+import numpy as np
+
+BANDWIDTH = 2e10                 # bytes/s streamed by the batched self GEMV (measured 2-5e10)
+FORCE_S = (1.0e-3, 3.0e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
+SELF_SETUP_S = (0.69, 4.2)       # seconds per vesicle to assemble S at p = 16, exponent in p
+PC_SETUP_S = (2.5, 4.5)          # seconds per vesicle to build and factor its 4C block at p = 16
+NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 
 
-def estimate(scene):
-    p = scene.p
+@dataclass(frozen=True)
+class Estimate:
+    """Bytes and seconds of one scene (see the module docstring)."""
+
+    n_vesicles: int
+    p: int
+    q: int
+    unknowns: int
+    double_layer: bool
+    mem_self: int
+    mem_pc: int                  # one cached set of LU factors
+    mem_pc_max: int              # up to 3 cached sets
+    mem_sources: int
+    mem_near: int
+    near_pairs: int              # at t = 0 (-1: not computed)
+    far_backend: str
+    t_forces: float
+    t_self: float
+    t_far: float
+    t_near: float
+    t_setup: float               # per solve (every step: three with -ves_adapt doubling)
+    t_pc: float                  # per preconditioner factorization (every -ves_pc_lag solves)
+
+    @property
+    def t_iteration(self):
+        return self.t_forces + self.t_self + self.t_far + self.t_near
+
+    @property
+    def memory(self):
+        return self.mem_self + self.mem_pc_max + self.mem_sources + self.mem_near
+
+    def __str__(self):
+        mib = lambda b: f"{b / 2**20:.1f} MiB"
+        ms = lambda s: f"{s * 1e3:.2f} ms"
+        near = "not computed" if self.near_pairs < 0 else f"{self.near_pairs} near pairs at t = 0"
+        return "\n".join([
+            f"cost     per GMRES iteration ~ {ms(self.t_iteration)}: forces {ms(self.t_forces)}, "
+            f"self {ms(self.t_self)}, far ({self.far_backend}) {ms(self.t_far)}, near {ms(self.t_near)} ({near})",
+            f"         per solve set-up ~ {self.t_setup:.2f} s (self operators); preconditioner "
+            f"factorization ~ {self.t_pc:.2f} s (every -ves_pc_lag solves)",
+            f"memory   ~ {mib(self.memory)}: self operators {mib(self.mem_self)} "
+            f"(N (3C)^2 x 8 B{' x 2, S and D' if self.double_layer else ''}), block preconditioner "
+            f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x 8 B, up to 3: {mib(self.mem_pc_max)}), "
+            f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
+        ])
+
+
+def _near_pairs(scene, p, q, near_factor):
+    """Near (p-grid point, other vesicle) pairs of the initial configuration."""
+    from . import sph
+    from ._kernels import search
+    from .layerpot.near import near_distance
+    from .simulation import initial_coefficients
+    from .surface import Surface
+    S = Surface(initial_coefficients(scene), p)
     N = scene.n_vesicles
-    C = (p + 1) ** 2 - 1
-    q = 2 * p
+    trg = np.ascontiguousarray(S.points().reshape(-1, 3))
+    src = np.ascontiguousarray(S.points(q).reshape(-1, 3))
+    trg_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p).npts)
+    src_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p, q).npts)
+    h = float(near_distance(S.area(), q, near_factor).max())
+    pairs, _ = search.near_pairs(trg, trg_id, src, src_id, h)
+    return int(np.asarray(pairs).reshape(-1, 2).shape[0])
+
+
+def estimate(scene, opts=None, near=True):
+    """Estimate of a scene's costs (an Estimate; str() gives the lines `vesflow check` prints).
+    opts: resolved options (vesflow.options.read_options) for q, the far-field backend and its
+    accuracy; near: count the near pairs of the initial configuration (N > 1, N M <= 2e5)."""
+    from .layerpot import far as farmod
+    p, N = scene.p, scene.n_vesicles
+    o = dict(opts) if opts is not None else {}
+    q = int(o.get("q_near") or 2 * p)
+    C, M, Mq = (p + 1) ** 2 - 1, 2 * p * (p + 1), 2 * q * (q + 1)
     eff = scene.effects()
-    n_ops = 2 if eff.double_layer else 1
+    dl = bool(eff.double_layer)
+    n_ops = 2 if dl else 1
     mem_self = N * n_ops * (3 * C) ** 2 * 8
     mem_pc = N * (4 * C) ** 2 * 8
+    mem_sources = N * Mq * 7 * 8 if N > 1 else 0
+    pairs = 0
+    if N > 1 and near:
+        pairs = _near_pairs(scene, p, q, float(o.get("near_factor") or 1.0)) if N * M <= 200_000 else -1
+    mem_near = max(pairs, 0) * (C + 3 * 8 + 9) * 8
+    t_forces = N * (FORCE_S[0] + FORCE_S[1] * p ** 3)
     t_self = mem_self / BANDWIDTH
-    M, Mq = 2 * p * (p + 1), 2 * q * (q + 1)
-    t_far = (N * M) * (N - 1) * Mq * PAIR_S if N > 1 else 0.0
-    t_forces = N * 30 * (p * p * q + p * q * q) * TRANSFORM_S
-    lines = [f"estimate per GMRES iteration: self {t_self * 1e3:.2f} ms, far (direct) {t_far * 1e3:.2f} ms, "
-             f"forces {t_forces * 1e3:.2f} ms",
-             f"memory: self operators {mem_self / 2**20:.1f} MiB, block preconditioner {mem_pc / 2**20:.1f} MiB"]
-    return "\n".join(lines)
+    backend, t_far = "none", 0.0
+    if N > 1:
+        nsrc, ntrg = N * Mq, N * M
+        t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, float(o.get("far_tol") or farmod.DEFAULT_EPS))
+        t_direct *= (N - 1) / N                      # a vesicle's own sources are left out
+        want = o.get("far", "auto")
+        if want == "auto":
+            backend = farmod.choose_backend(nsrc, ntrg, "auto", float(o.get("far_tol") or farmod.DEFAULT_EPS))
+        else:
+            backend = want
+        t_far = t_fmm if backend == "fmm" else t_direct
+        if eff.periodic:
+            backend += ", free space: the periodic sum is not modelled"
+    per_pair = farmod.DIRECT_SECONDS_PER_PAIR / max(1, _threads())
+    t_near = max(pairs, 0) * NEAR_EVALS * Mq * per_pair * (2 if dl else 1)
+    t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
+    t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
+    return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
+                    mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_sources=mem_sources, mem_near=mem_near,
+                    near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
+                    t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc)
+
+
+def _threads():
+    try:
+        from ._kernels import stokes
+        return int(stokes.max_threads())
+    except Exception:
+        return 1

@@ -12,12 +12,13 @@ Public names:
     read_output, RunOutput  read frames, steps, attributes, timings
     iter_frames             one frame at a time (for long runs and the renderer)
     read_checkpoint         the latest restartable state as a dict
+    read_attributes         the root attributes only (scene, options, p, ...)
     STEP_REASONS            codes of the /steps/reason column
 """
 from .layout import (FORMAT_VERSION, STEP_COLUMNS, STEP_REASONS, TIMING_KEYS, grid_size,
                      n_coefficients)
-from .reader import RunOutput, frame_fields, iter_frames, read_checkpoint, read_output
+from .reader import RunOutput, frame_fields, iter_frames, read_attributes, read_checkpoint, read_output
 from .writer import OutputWriter
 
-__all__ = ["OutputWriter", "RunOutput", "read_output", "iter_frames", "read_checkpoint", "frame_fields",
+__all__ = ["OutputWriter", "RunOutput", "read_output", "iter_frames", "read_checkpoint", "read_attributes", "frame_fields",
            "STEP_REASONS", "STEP_COLUMNS", "TIMING_KEYS", "grid_size", "n_coefficients", "FORMAT_VERSION"]

@@ -42,6 +42,24 @@ def _checkpoint_name(f):
     return best
 
 
+def read_attributes(path, what=None):
+    """The root attributes of a run file as a dict (no datasets are read).  A missing file
+    or one that is not a run file is a SceneError (prefixed by `what`, e.g. "--restart")."""
+    pre = f"{what} {path}" if what else str(path)
+    try:
+        f = h5py.File(path, "r")
+    except FileNotFoundError:
+        raise SceneError(f"{pre}: no such file") from None
+    except OSError as e:
+        raise SceneError(f"{pre}: cannot open it as an HDF5 file ({e})") from None
+    with f:
+        a = _attrs(f)
+    missing = [k for k in ("scene", "p", "n_vesicles") if k not in a]
+    if missing:
+        raise SceneError(f"{pre}: not a vesflow run file (no root attribute {missing[0]!r})")
+    return a
+
+
 def read_checkpoint(path):
     """The latest complete checkpoint of a run file as a dict (arrays, scalars, nested
     dicts), with "time".  Raises SceneError if there is none."""

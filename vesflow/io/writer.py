@@ -23,9 +23,14 @@ class OutputWriter:
     """
 
     def __init__(self, path, *, scene_text, options_text, version, p, n_vesicles,
-                 periodic_length, restart_of=None, n_coefficients=None, _file=None):
+                 periodic_length, restart_of=None, n_coefficients=None, checkpoint_every=None, _file=None):
         self.path = Path(path)
         self.checkpoint = None  # the state restarted from (reopen only)
+        # write_checkpoint keeps at most one checkpoint per `checkpoint_every` of simulated
+        # time (None: every call); `on_checkpoint` callables get each state written.
+        self.checkpoint_every = None if checkpoint_every is None else float(checkpoint_every)
+        self.last_checkpoint_time = None
+        self.on_checkpoint = []
         if _file is not None:  # reopen()
             self._f = _file
             self._read_sizes()
@@ -129,6 +134,8 @@ class OutputWriter:
                 optional[name] = self._check(name, arr, OPTIONAL_FIELDS[name][0](N, M, C))
         fr = self._f["frames"]
         k = self.n_frames
+        if k > 0 and abs(float(fr["time"][k - 1]) - float(time)) <= time_tol(time):
+            k -= 1  # a frame at the time of the last one replaces it (frame times increase strictly)
         for name, v in values.items():
             d = fr[name]
             d.resize(k + 1, axis=0)
@@ -219,12 +226,23 @@ class OutputWriter:
             tg.attrs[str(k)] = float(v)
         self._f.flush()
 
-    def write_checkpoint(self, state):
+    def checkpoint_due(self, time):
+        """True if a checkpoint at simulated time `time` is due under checkpoint_every."""
+        if self.checkpoint_every is None or self.last_checkpoint_time is None:
+            return True
+        t = float(time)
+        return t >= self.last_checkpoint_time + self.checkpoint_every - time_tol(t)
+
+    def write_checkpoint(self, state, force=False):
         """Replace /checkpoint by `state` (a dict with at least "time"): arrays become
         datasets, scalars and strings attributes, nested dicts groups, None an empty
-        attribute.  Written to /checkpoint_new first, then swapped in."""
+        attribute.  Written to /checkpoint_new first, then swapped in.  Skipped (returns
+        False) when the last checkpoint is less than checkpoint_every older, unless force.
+        After writing, every callable of `on_checkpoint` is called with the state."""
         if "time" not in state:
             raise ValueError("write_checkpoint: the state needs a 'time' entry")
+        if not force and not self.checkpoint_due(state["time"]):
+            return False
         f = self._f
         if "checkpoint_new" in f:
             del f["checkpoint_new"]
@@ -239,10 +257,20 @@ class OutputWriter:
             del f["checkpoint"]
         f.move("checkpoint_new", "checkpoint")
         f.flush()
+        self.last_checkpoint_time = float(state["time"])
+        for fn in list(self.on_checkpoint):
+            fn(state)
+        return True
+
+    def write_attrs(self, **attrs):
+        """Set extra root attributes (strings or numbers) and flush."""
+        for k, v in attrs.items():
+            self._f.attrs[str(k)] = v
+        self._f.flush()
 
     # ------------------------------------------------------------------ restart
     @classmethod
-    def reopen(cls, path, *, options_text=None):
+    def reopen(cls, path, *, options_text=None, checkpoint_every=None, restart_of=None):
         """Open an existing run file to continue it from its checkpoint: frames with
         time > t_checkpoint and steps that start at or after t_checkpoint are removed,
         t_checkpoint is appended to the root attribute `restarts` (and options_text,
@@ -280,13 +308,16 @@ class OutputWriter:
             a["restarts"] = np.append(np.asarray(a.get("restarts", []), dtype=float), tc)
             old = [s.decode() if isinstance(s, bytes) else str(s) for s in a.get("restart_options", [])]
             a["restart_options"] = np.asarray(old + [str(options_text or "")], dtype=h5py.string_dtype())
+            if restart_of is not None and Path(restart_of).resolve() != path.resolve():
+                a["restart_of"] = str(restart_of)
             f.flush()
         except BaseException:
             f.close()
             raise
         w = cls(path, scene_text=None, options_text=None, version=None, p=None, n_vesicles=None,
-                periodic_length=None, _file=f)
+                periodic_length=None, checkpoint_every=checkpoint_every, _file=f)
         w.checkpoint = state
+        w.last_checkpoint_time = tc
         return w
 
     # ------------------------------------------------------------------ closing
