@@ -199,16 +199,19 @@ class Run:
         return self
 
     def _post_step(self):
+        """Reparameterize, then restore area and volume (the reparameterization moves points
+        tangentially but changes A and V at the discretization error, ~1e-6; the correction after
+        it leaves them at -ves_correct_tol)."""
         st = self.stepper
         o = self.opts
-        if o["correct"] == "area_volume":
-            with self.timers.stage("other"):
-                st.coeffs, _, _ = correct_area_volume(st.coeffs, self.p, self.area0, self.volume0,
-                                                      tol=o["correct_tol"], max_its=o["correct_max_its"])
         if o["reparam"]:
             with self.timers.stage("repar"):
                 st.coeffs, _, _, _ = reparameterize(st.coeffs, self.p, dtau_max=o["reparam_dtau_max"],
                                                     tol=o["reparam_tol"], max_its=o["reparam_max_its"])
+        if o["correct"] == "area_volume":
+            with self.timers.stage("other"):
+                st.coeffs, _, _ = correct_area_volume(st.coeffs, self.p, self.area0, self.volume0,
+                                                      tol=o["correct_tol"], max_its=o["correct_max_its"])
 
     # ------------------------------------------------------------------ output
     def _frame(self):
