@@ -120,7 +120,7 @@ class Run:
             elif adapt == "invariants":
                 S = st.surface
                 err = float(max(np.abs(S.area() / self.area0 - 1).max(), np.abs(S.volume() / self.volume0 - 1).max()))
-            if not np.all(np.isfinite(st.coeffs)):
+            if not (np.all(np.isfinite(st.coeffs)) and np.isfinite(err)):   # NaN in either candidate
                 raise ConvergenceError("non-finite state", reason="nan", iterations=its)
         except ConvergenceError as e:
             st.coeffs, st.time, st.last = saved
