@@ -404,9 +404,6 @@ def test_background_flow_evaluated_with_a_flow(monkeypatch):
     assert spy.calls > 0
 
 
-@pytest.mark.xfail(strict=True, reason="vesflow/stepper.py Stepper.rhs calls background_velocity(None, X) "
-                   "and analyses the zero field on the p-grid at every solve when the scene has no [flow] "
-                   "(fix: skip both when self.physics.flow is None)")
 def test_background_flow_not_evaluated_without_a_flow(monkeypatch):
     from vesflow import stepper
     spy = Spy(monkeypatch, stepper, "background_velocity")

@@ -43,7 +43,7 @@ def vesicle_params(scene):
 
 def physics(scene):
     flow, args = None, {}
-    if scene.flow is not None:
+    if scene.flow is not None and (scene.flow.rate or scene.flow.amplitude):   # rate 0: no flow, no cost
         flow = scene.flow.type
         if flow == "taylor_green":
             args = {"amplitude": scene.flow.amplitude, "period": scene.periodic_length}

@@ -80,8 +80,11 @@ class Stepper:
         self.timers.start("other")
         Tp = sph.transform(self.p)
         X = surface.points()
-        uinf = background_velocity(self.physics.flow, X, **self.physics.flow_args)
-        b1 = Tp.analysis(np.moveaxis(uinf, -1, -2))
+        if self.physics.flow is None:                     # no [flow]: nothing to evaluate
+            b1 = np.zeros(self.coeffs.shape)
+        else:
+            uinf = background_velocity(self.physics.flow, X, **self.physics.flow_args)
+            b1 = Tp.analysis(np.moveaxis(uinf, -1, -2))
         f = op.coeffs_vec(self.explicit_traction(surface, op.geo))
         self.timers.stop("other")
         b1 = b1 + lp.apply(f, None)
