@@ -2,6 +2,7 @@
 #   make test      set-up (Debian packages, PETSc env, kernels) then the default tests
 #   make run       set-up then the default scene (or SCENE=...) and its movie
 #   make test-all  the default tests plus the slow ones and the cheap accuracy-cost study
+#   make study     the full accuracy-cost study (docs/study/, about an hour on 2 cores)
 SHELL := /bin/bash
 PY      := .venv/bin/python
 VESFLOW := .venv/bin/vesflow
@@ -11,7 +12,7 @@ PYTEST  := $(PY) -m pytest
 export VTK_DEFAULT_OPENGL_WINDOW ?= vtkEGLRenderWindow
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup test test-all test-mpi run bench clean
+.PHONY: setup test test-all test-mpi run bench study clean
 
 setup:
 	@tools/setup_env.sh
@@ -38,6 +39,9 @@ run: setup
 	@mkdir -p out
 	$(VESFLOW) run $(SCENE) -o $(OUT)
 	$(VESFLOW) render $(OUT) -o $(OUT:.h5=.mp4) --frames $(OUT:.h5=_frames)
+
+study: setup
+	$(VESFLOW) study accuracy-cost runs/accuracy_cost.toml --out docs/study
 
 bench: setup
 	$(PY) benchmarks/run_all.py
