@@ -48,7 +48,7 @@ class Case:
 # horizon and degrees that this machine runs in about an hour; E / T spans a factor 8 as there.
 FULL_REFERENCE = Case(16, 2.5e-3, 0.0)
 FULL_CASES = (
-    Case(16, 5e-3), Case(16, 1e-2), Case(16, 2e-2), Case(16, 4e-2),          # fixed p, no repulsion
+    Case(16, 1e-2), Case(16, 2e-2), Case(16, 4e-2),                          # fixed p, no repulsion
     Case(12, 1e-2, 0.02), Case(10, 2e-2, 0.04), Case(8, 4e-2, 0.06),         # low p made possible by repulsion
     Case(12, 1e-2), Case(8, 4e-2),                                            # low p without repulsion
 )
