@@ -53,16 +53,20 @@ def gyration_tensor(surface):
 
 
 def inclination_angle(surface):
-    """Angle (radians, in (-pi/2, pi/2]) from x to the longest principal axis, measured toward z."""
+    """Angle (radians, in (-pi/2, pi/2]) from x to the longest principal axis of the x-z block of the
+    gyration tensor (the shear-plane section), measured toward z; and the equivalent-ellipsoid semi-axes
+    sqrt(5 lambda_k / V) of the full tensor, longest first.  The scene is symmetric in y, so the tensor
+    has no xy, yz entries and the x-z block's axis is a principal axis of the vesicle."""
     G = gyration_tensor(surface)[0]
-    w, V = np.linalg.eigh(G)
-    e = V[:, -1]
-    a = np.arctan2(e[2], e[0])
+    w2, V2 = np.linalg.eigh(G[np.ix_([0, 2], [0, 2])])
+    e = V2[:, -1]
+    a = np.arctan2(e[1], e[0])
     if a > np.pi / 2:
         a -= np.pi
     elif a <= -np.pi / 2:
         a += np.pi
-    return a, np.sqrt(w[::-1] * 5.0 / surface.volume()[0])     # semi-axes of the equivalent ellipsoid
+    w = np.linalg.eigvalsh(G)
+    return a, np.sqrt(w[::-1] * 5.0 / surface.volume()[0])
 
 
 def centroid_velocity(surface, u_grid, q):
@@ -278,7 +282,7 @@ def summarize(d):
     return "\n".join(lines)
 
 
-def plot(d, png):
+def plot(d, png, overlays=()):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -290,15 +294,18 @@ def plot(d, png):
     incl = np.degrees(d["incl"])
     fig, axs = plt.subplots(3, 1, figsize=(7.5, 8.5), sharex=True)
     ax = axs[0]
-    ax.plot(t, incl, "C0-")
+    ax.plot(t, incl, "C0-", label=str(d.get("label", "run")))
+    for k, o in enumerate(overlays):
+        ax.plot(o["t"], np.degrees(o["incl"]), f"C{4 + k}-", lw=0.9, label=str(o.get("label", f"overlay {k}")))
     ax.axhspan(18.0, 27.0, color="0.88", zorder=0, label="0.1 pi .. 0.15 pi (range quoted in the issue)")
     m = incl[last].mean()
     ax.annotate(f"settled: {m:.2f} deg = {m / 180:.3f} pi", (0.75 * T, m), (0.45 * T, m + 1.0), fontsize=9,
                 arrowprops=dict(arrowstyle="->", lw=0.8))
     ax.set_ylabel("inclination angle (deg)")
-    ax.set_ylim(16, 31)
+    lo = min([16.0] + [np.degrees(o["incl"]).min() - 1 for o in overlays])
+    ax.set_ylim(lo, 31)
     ax.legend(loc="lower right", fontsize=8)
-    ax.set_title(f"prolate start, v = 0.9, lambda = 1, kappa_b = {float(d.get('kappa', 0.1)):g}, shear rate 1, "
+    ax.set_title(f"v = 0.9, lambda = 1, kappa_b = {float(d.get('kappa', 0.1)):g}, shear rate 1, "
                  f"p = {int(d['p'])}", fontsize=10)
     ax = axs[1]
     ax.plot(t, psi / (2 * np.pi), "C1-", label="material marker on y = 0")
@@ -314,6 +321,8 @@ def plot(d, png):
     ax.plot(t, np.gradient(psi, t), "C1:", lw=0.9, label="marker d psi / dt")
     ax.plot(t[1:], 2 * np.pi / d["period"][1:], "C2-", lw=1.8, label="2 pi / T,  T = closed integral d alpha / omega (y = 0)")
     ax.plot(t[1:], d["omega_w"][1:], "C3--", label="r^2-weighted mean angular velocity")
+    for k, o in enumerate(overlays):
+        ax.plot(o["t"][1:], 2 * np.pi / o["period"][1:], f"C{4 + k}-", lw=0.9, label="2 pi / T, " + str(o.get("label", "")))
     ax.axhline(0.5, color="0.6", lw=0.8, ls=":")
     ax.text(0.2, 0.51, "sphere: 1/2", fontsize=8, color="0.4")
     ax.set_ylim(0.2, 1.0)
@@ -333,6 +342,10 @@ def main(argv=None):
     ap.add_argument("--horizon", type=float, default=None, help="simulated time (scene: 30)")
     ap.add_argument("--adapt-tol", type=float, default=None, help="-ves_adapt_tol (default 0.01)")
     ap.add_argument("--kappa", type=float, default=None, help="bending modulus kappa_b (scene: 0.1, capillary number 10)")
+    ap.add_argument("--shape", choices=("prolate", "oblate"), default=None, help="initial shape (scene: prolate)")
+    ap.add_argument("--beta", type=float, default=None,
+                    help="Euler angle beta (degrees) of the initial shape about y (scene: 60, i.e. a prolate at 30 deg)")
+    ap.add_argument("--overlay", nargs="*", default=[], help="saved series drawn as thin lines in the figure")
     ap.add_argument("--npz", default=os.path.join(ROOT, "out", "tank_treading.npz"))
     ap.add_argument("--png", default=os.path.join(ROOT, "docs", "img", "tank_treading.png"))
     ap.add_argument("--replot", action="store_true", help="only summarize and plot the saved series")
@@ -353,10 +366,15 @@ def main(argv=None):
             over["-ves_adapt_tol"] = a.adapt_tol
         getter = options.dict_getter(over)
         scene = options.apply_overrides(scene, getter)
+        import dataclasses
+        ves = scene.vesicles[0]
         if a.kappa is not None:
-            import dataclasses
-            scene = dataclasses.replace(scene, vesicles=tuple(dataclasses.replace(v, bending_modulus=a.kappa)
-                                                             for v in scene.vesicles))
+            ves = dataclasses.replace(ves, bending_modulus=a.kappa)
+        if a.shape is not None:
+            ves = dataclasses.replace(ves, shape=a.shape)
+        if a.beta is not None:
+            ves = dataclasses.replace(ves, rotation=(0.0, a.beta, 0.0))
+        scene = dataclasses.replace(scene, vesicles=(ves,))
         opts = options.read_options(getter, scene)
         print(f"{scene.title}: p = {scene.p}, horizon {scene.time.horizon:g}, adapt tol {opts['adapt_tol']:g}, "
               f"loadavg {os.getloadavg()}")
@@ -368,6 +386,7 @@ def main(argv=None):
         d = {k: np.asarray(v, dtype=float) for k, v in run.series.items()}
         d["p"] = np.array(scene.p)
         d["kappa"] = np.array(scene.vesicles[0].bending_modulus)
+        d["label"] = np.array(f"{scene.vesicles[0].shape} start at {np.degrees(d['incl'][0]):.0f} deg, p = {scene.p}")
         d["adapt_tol"] = np.array(opts["adapt_tol"])
         os.makedirs(os.path.dirname(os.path.abspath(a.npz)), exist_ok=True)
         np.savez(a.npz, **d)
@@ -377,7 +396,7 @@ def main(argv=None):
         print(f"series: {a.npz}")
     d = dict(np.load(a.npz))
     print(summarize(d))
-    plot(d, a.png)
+    plot(d, a.png, [dict(np.load(f)) for f in a.overlay])
 
 
 if __name__ == "__main__":

@@ -130,10 +130,22 @@ class Stepper:
             ksp.setUp()
         ksp.solve(b, x)
         reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+        rtol = ksp.getTolerances()[0]
         ksp.destroy()
-        A.destroy()
         if reason < 0:
+            A.destroy()
             raise ConvergenceError(f"GMRES did not converge: reason {_reason_name(reason)} after {its} iterations",
+                                   reason=reason, iterations=its)
+        # GMRES tests the preconditioned residual: a (near-)singular preconditioner can report
+        # convergence with a wrong solution.  One more matvec checks the true residual.
+        r = b.duplicate()
+        A.mult(x, r)
+        r.aypx(-1.0, b)
+        relres = r.norm() / max(b.norm(), 1e-300)
+        A.destroy()
+        if not relres <= max(1e-6, 1e4 * rtol):
+            raise ConvergenceError(f"GMRES reported {_reason_name(reason)} after {its} iterations but the true "
+                                   f"relative residual is {relres:.2e} (a singular preconditioner?)",
                                    reason=reason, iterations=its)
         u, s = op.split(x.getArray().copy())
         self.lp_last = lp
