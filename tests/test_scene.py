@@ -710,7 +710,9 @@ def test_bad_override_values(opts, name):
 def test_read_options_defaults_and_values():
     sc = parse(BASE)
     o = O.read_options(O.dict_getter({}), sc)
-    assert (o.q_self, o.q_near, o.q_far) == (24, 24, 12) and o.checkpoint_every == 1.0
+    assert (o.q_self, o.q_near, o.q_far, o.q_max) == (24, 24, 24, 48) and o.checkpoint_every == 1.0
+    assert o.quad_tol == 0.0
+    assert O.read_options(O.dict_getter({"-ves_q_far": 30}), sc).q_near == 30     # one grid for both
     assert o.far == "auto" and o.adapt == "doubling" and o.adapt_beta == 0.9 and o.reparam is True
     assert o.reparam_dtau_max == 1e-3 and o["-ves_correct"] == "area_volume" and o["coupling"] == "implicit"
     assert o.given == frozenset()
@@ -727,6 +729,8 @@ def test_read_options_defaults_and_values():
 
 @pytest.mark.parametrize("opts, name", [
     ({"-ves_q_self": 8}, "-ves_q_self"), ({"-ves_q_far": "x"}, "-ves_q_far"), ({"-ves_far": "fmn"}, "-ves_far"),
+    ({"-ves_q_near": 24, "-ves_q_far": 30}, "-ves_q_far"), ({"-ves_quad_tol": -1}, "-ves_quad_tol"),
+    ({"-ves_quad_tol": 1e-4, "-ves_q_self": 60}, "-ves_q_self"), ({"-ves_q_max": 4}, "-ves_q_max"),
     ({"-ves_adapt": "yes"}, "-ves_adapt"), ({"-ves_adapt_tol": 0}, "-ves_adapt_tol"),
     ({"-ves_adapt_beta": 1.5}, "-ves_adapt_beta"), ({"-ves_reparam": "maybe"}, "-ves_reparam"),
     ({"-ves_dt_min": 1, "-ves_dt_max": 0.5}, "-ves_dt_min"), ({"-ves_reparam_tol": 0.1}, "-ves_reparam_tol"),

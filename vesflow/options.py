@@ -87,12 +87,17 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_output_every", float, None, "simulated time between saved frames", "scene overrides",
        scene_key="output.every", gt=0, default_text="scene (T/100)"),
     # -- quadrature and layer potentials -------------------------------------------------------
-    _O("-ves_q_self", int, None, "upsampled degree q of the singular (self) quadrature, >= p", "quadrature",
+    _O("-ves_q_self", int, None, "upsampled degree q of the singular (self) quadrature, > p", "quadrature",
        ge=2, le=256, default_text="2p"),
     _O("-ves_q_near", int, None, "upsampled degree q of the near-singular rule, >= p", "quadrature",
        ge=2, le=256, default_text="2p"),
-    _O("-ves_q_far", int, None, "upsampled degree q of the far-field rule, >= p", "quadrature",
-       ge=2, le=256, default_text="p"),
+    _O("-ves_q_far", int, None, "same as -ves_q_near: the near-singular and far-field rules share one "
+       "upsampled grid (paper 3.2.4)", "quadrature", ge=2, le=256, default_text="2p", alias_of="-ves_q_near"),
+    _O("-ves_quad_tol", float, 0.0, "adapt the quadrature degrees to this error of the double-layer identity "
+       "(paper 3.2.4): q_self (q_near) + 1 when the self (near or far) error is above it, - 1 when below "
+       "tol / 10; 0 keeps q fixed", "quadrature", ge=0, lt=1),
+    _O("-ves_q_max", int, None, "largest degree the quadrature adaptation may use", "quadrature",
+       ge=2, le=256, default_text="4p"),
     _O("-ves_near_factor", float, 1.0, "near-zone width h_n = factor * sqrt(A_max / q_near)", "quadrature",
        gt=0, le=10),
     _O("-ves_far", str, "auto", "far-field sum: auto = direct up to -ves_far_direct_max vesicles in free "
@@ -310,7 +315,7 @@ class OptionValues(Mapping):
 
 def read_options(getter, scene=None) -> OptionValues:
     """Every option that is not a scene override, checked, with derived defaults resolved
-    against the scene (q_self = q_near = 2p, q_far = p, checkpoint_every = output.every)."""
+    against the scene (q_self = q_near = q_far = 2p, q_max = 4p, checkpoint_every = output.every)."""
     vals, given = {}, set()
     for o in REGISTRY:
         if o.scene_key is not None:
@@ -323,11 +328,20 @@ def read_options(getter, scene=None) -> OptionValues:
         vals[o.key] = v
     if scene is not None:
         p = scene.discretization.p
-        for key, mult in (("q_self", 2), ("q_near", 2), ("q_far", 1)):
+        if vals["q_far"] is not None:
+            if vals["q_near"] is not None and vals["q_near"] != vals["q_far"]:
+                _fail(OPTIONS["-ves_q_far"], vals["q_far"], f"contradicts -ves_q_near = {vals['q_near']} "
+                      "(one grid serves both rules; give one of them)")
+            vals["q_near"] = vals["q_far"]
+        for key, mult in (("q_self", 2), ("q_near", 2), ("q_max", 4)):
             if vals[key] is None:
                 vals[key] = mult * p
-            elif vals[key] < p:
-                _fail(OPTIONS[f"-ves_{key}"], vals[key], f"must be >= p = {p}")
+            elif vals[key] < p + (key == "q_self"):
+                _fail(OPTIONS[f"-ves_{key}"], vals[key], f"must be {'>' if key == 'q_self' else '>='} p = {p}")
+        vals["q_far"] = vals["q_near"]
+        for key in ("q_self", "q_near"):
+            if vals["quad_tol"] > 0 and vals[key] > vals["q_max"]:
+                _fail(OPTIONS[f"-ves_{key}"], vals[key], f"must be <= -ves_q_max = {vals['q_max']}")
         if vals["checkpoint_every"] is None:
             vals["checkpoint_every"] = scene.output.every
     if vals["dt_max"] is not None and vals["dt_min"] >= vals["dt_max"]:

@@ -98,6 +98,8 @@ class Run:
                 from .stepper import Solution
                 self.stepper.last = Solution(self.u.copy(), self.sigma.copy(), 0, 0)
             self.stepper.time = self.t
+            if "q_self" in checkpoint and opts["quad_tol"] > 0:     # the adapted degrees
+                settings.q_self, settings.q_far = int(checkpoint["q_self"]), int(checkpoint["q_near"])
 
     # ------------------------------------------------------------------ one attempted step
     def _try(self, dt):
@@ -126,7 +128,7 @@ class Run:
             st.coeffs, st.time, st.last = saved
             reason = "nonfinite" if e.reason == "nan" else "ksp"
             return None, reason, getattr(e, "iterations", 0) or 0, np.inf
-        if self.opts["collision"] and st.surface.n_vesicles > 1 and collision.contacts(st.surface, self.opts["q_near"]) > 0:
+        if self.opts["collision"] and st.surface.n_vesicles > 1 and collision.contacts(st.surface, self.q_near) > 0:
             st.coeffs, st.time, st.last = saved
             return None, "collision", its, err
         tol = self.opts["adapt_tol"]
@@ -159,17 +161,20 @@ class Run:
             if max_steps is not None and self.n_accepted >= max_steps:
                 break
             dt = min(self.dt, self.horizon - self.t)
+            q_used = (self.q_self, self.q_near)
             sol, reason, its, err = self._try(dt)
             accepted = sol is not None
-            self.rows.append((self.t, dt, int(accepted), its, err, reason))
+            self.rows.append((self.t, dt, int(accepted), its, err, reason) + q_used)
             if self.monitor:
-                self.log(f"step {self.counts['accepted'] + self.counts['rejected']:5d} t={self.t:.6g} dt={dt:.3e} its={its} err={err:.2e} {reason}")
+                self.log(f"step {self.counts['accepted'] + self.counts['rejected']:5d} t={self.t:.6g} dt={dt:.3e} its={its} err={err:.2e} q={q_used[0]}/{q_used[1]} {reason}")
             if accepted:
                 rejects_in_row = 0
                 self.counts["accepted"] += 1
                 self.n_accepted += 1
                 self.t = st.time
                 self.u, self.sigma = sol.u, sol.sigma
+                if self.opts["quad_tol"] > 0:
+                    self._adapt_quadrature()
                 self._post_step()
                 self.dt = self._next_dt(dt, err)
                 if self.t >= self.next_frame - 1e-12 or self.t >= self.horizon * (1 - 1e-12):
@@ -197,6 +202,30 @@ class Run:
         if self.writer is not None:
             self.writer.write_timings(self.timers.as_dict())
         return self
+
+    @property
+    def q_self(self):
+        return int(self.stepper.lp_settings.q_self)
+
+    @property
+    def q_near(self):
+        return int(self.stepper.lp_settings.q_far)
+
+    def _adapt_quadrature(self):
+        """Paper 3.2.4: the double-layer identity sum_j D_j[1] = 1, 1/2, 0 inside / on / outside,
+        checked on the layer potentials of the last solve (self regime -> q_self; near and far
+        regimes, which share one grid -> q_near).  q + 1 above -ves_quad_tol, q - 1 below a tenth
+        of it (the dead band keeps q from flipping every step), within [p (p + 1 for q_self), -ves_q_max]."""
+        lp = self.stepper.lp_last
+        if lp is None:
+            return
+        with self.timers.stage("other"):
+            e = lp.error_estimate()
+        tol, lo, hi = self.opts["quad_tol"], self.p, self.opts["q_max"]
+        s = self.stepper.lp_settings
+        s.q_self = _step_q(self.q_self, e["self"], tol, lo + 1, hi)      # Graham-Sloan needs q > p
+        s.q_far = _step_q(self.q_near, max(e["near"], e["far"]), tol, lo, hi)
+        self.quad_errors = e
 
     def _post_step(self):
         """Reparameterize, then restore area and volume (the reparameterization moves points
@@ -235,7 +264,8 @@ class Run:
     def checkpoint(self):
         return {"time": self.t, "dt": self.dt, "coeffs": self.stepper.coeffs, "area0": self.area0,
                 "volume0": self.volume0, "next_frame": self.next_frame, "n_accepted": self.n_accepted,
-                "sigma": self.sigma, "u": self.u, "has_last": int(self.stepper.last is not None)}
+                "sigma": self.sigma, "u": self.u, "has_last": int(self.stepper.last is not None),
+                "q_self": self.q_self, "q_near": self.q_near}
 
     def _flush_steps(self):
         if self.writer is not None and self.rows:
@@ -248,6 +278,14 @@ class Run:
                          f"accepted {self.counts['accepted']}  rejected {self.counts['rejected']}  "
                          f"wall {_time.perf_counter() - t0:7.1f} s ")
         sys.stderr.flush()
+
+
+def _step_q(q, err, tol, lo, hi):
+    if not np.isfinite(err) or err > tol:
+        return min(q + 1, hi)
+    if err < 0.1 * tol:
+        return max(q - 1, lo)
+    return q
 
 
 def Tgrid(p, c):

@@ -30,6 +30,8 @@ STEP_COLUMNS = {
     "ksp_its": ("i4", "GMRES iterations of the step (sum over its solves)"),
     "error_estimate": ("f8", "error estimate used by the adaptivity (NaN if none)"),
     "reason": (REASON_DTYPE, "why the step was accepted or rejected: see attribute reason_table"),
+    "q_self": ("i2", "upsampled degree of the singular quadrature used by the step (0: not recorded)"),
+    "q_near": ("i2", "upsampled degree of the near-singular and far-field rules used by the step (0: not recorded)"),
 }
 TIMING_KEYS = ("setup", "self", "near", "far", "repar", "other", "total")
 

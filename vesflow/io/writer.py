@@ -158,9 +158,9 @@ class OutputWriter:
     def write_steps(self, rows):
         """Append attempted steps and flush.  rows: a sequence of mappings (keys of
         STEP_COLUMNS), or of tuples in the order time, dt, accepted, ksp_its,
-        error_estimate, reason, or one mapping of equal-length columns.  reason is a
-        code or a name of STEP_REASONS; missing columns: accepted=1, ksp_its=0,
-        error_estimate=NaN, reason=accepted if accepted else other."""
+        error_estimate, reason, q_self, q_near, or one mapping of equal-length columns.
+        reason is a code or a name of STEP_REASONS; missing columns: accepted=1, ksp_its=0,
+        error_estimate=NaN, reason=accepted if accepted else other, q_self=q_near=0."""
         names = list(STEP_COLUMNS)
         if isinstance(rows, dict):
             cols = {k: np.atleast_1d(np.asarray(v)) for k, v in rows.items()}
@@ -207,11 +207,18 @@ class OutputWriter:
                 if int(v) not in STEP_REASONS:
                     raise ValueError(f"write_steps: unknown reason code {v!r}; known: {sorted(STEP_REASONS)}")
                 reason.append(int(v))
+        qs = [0 if v is None else int(v) for v in cols.get("q_self", [None] * n)]
+        qn = [0 if v is None else int(v) for v in cols.get("q_near", [None] * n)]
         data = dict(time=time, dt=dt, accepted=np.asarray(acc, "i1"), ksp_its=np.asarray(its, "i4"),
-                    error_estimate=np.asarray(err, "f8"), reason=np.asarray(reason, "i1"))
+                    error_estimate=np.asarray(err, "f8"), reason=np.asarray(reason, "i1"),
+                    q_self=np.asarray(qs, "i2"), q_near=np.asarray(qn, "i2"))
         st = self._f["steps"]
         k = self.n_steps
         for name in names:
+            if name not in st:                    # a file of an older layout, reopened for a restart
+                dtype, desc = STEP_COLUMNS[name]
+                st.create_dataset(name, data=np.zeros(k, dtype), maxshape=(None,), chunks=(4096,))
+                st[name].attrs["description"] = desc
             d = st[name]
             d.resize(k + n, axis=0)
             d[k:k + n] = data[name]
