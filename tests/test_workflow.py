@@ -504,3 +504,15 @@ def test_help_lists_every_option_with_its_default():
     for o in REGISTRY:
         row = [line for line in lines if line.strip().startswith(o.name + " ")]
         assert row and f"default: {o.shown_default}" in row[0], o.name
+
+
+@pytest.mark.parametrize("args,words", [(["runs/taylor_green.toml"], "periodic domains"),
+                                        (["runs/relaxation.toml", "-ves_far", "ewald"], "ewald")])
+def test_unavailable_features_stop_before_any_output(monkeypatch, tmp_path, capsys, args, words):
+    """Exit status 3, one line, and no output file left behind."""
+    pytest.importorskip("petsc4py").init([])
+    out = tmp_path / "x.h5"
+    rc = _cli(monkeypatch, ["run", *args, "-o", out])
+    err = capsys.readouterr().err
+    assert rc == 3 and words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()

@@ -177,7 +177,8 @@ def cmd_run(rest):
         raise SceneError(f"{PETSc.COMM_WORLD.getSize()} MPI processes: parallel runs are not available yet "
                          "(the vesicle partition is a later issue); run one process and use OMP_NUM_THREADS threads")
     from .io import OutputWriter
-    from .simulation import Run
+    from .simulation import Run, check_available
+    check_available(sc, opts)                # before the output file exists
     ck_every = opts["checkpoint_every"]
     if restart is not None:
         out = out or restart

@@ -60,9 +60,7 @@ class Run:
     """Drives a Stepper over the scene's horizon; writes through an io.OutputWriter (or none)."""
 
     def __init__(self, scene, opts, writer=None, checkpoint=None, progress=False, monitor=False, log=print):
-        if scene.domain is not None:
-            raise NumericalFailure("periodic domains ([domain]) are not available yet: the spectral Ewald "
-                                   "far field is a later issue; remove [domain] to run in free space")
+        check_available(scene, opts)
         self.scene, self.opts, self.writer = scene, opts, writer
         self.p = scene.p
         self.timers = Timers()
@@ -278,6 +276,14 @@ class Run:
                          f"accepted {self.counts['accepted']}  rejected {self.counts['rejected']}  "
                          f"wall {_time.perf_counter() - t0:7.1f} s ")
         sys.stderr.flush()
+
+
+def check_available(scene, opts):
+    """Refuse (exit status 3) what this version cannot run, before any output is created."""
+    if scene.domain is not None:
+        raise NumericalFailure("periodic domains ([domain]) are not available yet: the spectral Ewald "
+                               "far field is a later issue; remove [domain] to run in free space")
+    _backend(opts["far"])
 
 
 def _step_q(q, err, tol, lo, hi):
