@@ -5,12 +5,17 @@ p-grid (M = 2p(p+1) per vesicle), sources on the q-grid (2q(q+1) per vesicle) wi
 Gauss-Legendre area weights of docs/conventions.md, random densities.  For each number of
 vesicles N and each backend of vesflow.layerpot.far, the time of one evaluation (best of
 ``--repeat``; set-up of the FarField object timed separately), the FMM error against the
-direct sum where both ran, and the growth exponent fitted to log(time) vs log(N).
+direct sum where both ran, the growth exponent fitted to log(time) vs log(N) (least squares),
+and the crossover N above which the FMM is faster: from the measured wall times where both
+were measured on either side, else from the power laws fitted to the 3 largest sizes (wall and
+"ideal" = CPU / threads).  One evaluation is what a GMRES iteration costs in the far field
+(single layer of all vesicles' q-grid sources at all p-grid targets, own vesicle excluded).
 A case is skipped (and reported) when its predicted time, extrapolated from the previous
 size with N^2 (direct) or N^1.2 (FMM), exceeds ``--max-seconds`` or would take the run past
 ``--budget`` seconds in total.
 
-    OMP_NUM_THREADS=2 python benchmarks/far_field.py                  # the run of docs/far_field.md
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/far_field.py       # the run of docs/far_field.md
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/far_field.py       # direct on 2 threads (fmm stays serial)
     python benchmarks/far_field.py --sizes 8 16 --layer double --eps 1e-6
 """
 import argparse
@@ -79,7 +84,7 @@ def main(argv=None):
                     help="FMM accuracies to time (one FMM column each)")
     ap.add_argument("--layer", choices=["single", "double", "both"], default="single")
     ap.add_argument("--repeat", type=int, default=2, help="timed evaluations per case (best kept) when cheap")
-    ap.add_argument("--max-seconds", type=float, default=200.0,
+    ap.add_argument("--max-seconds", type=float, default=120.0,
                     help="skip a case whose predicted time per evaluation exceeds this")
     ap.add_argument("--budget", type=float, default=540.0,
                     help="skip a case that would take the whole run past this many seconds")
@@ -140,7 +145,7 @@ def main(argv=None):
                 ref = u
             elif ref is not None:
                 errs.append(f"{np.abs(u - ref).max() / np.abs(ref).max():.1e}")
-        print(row + " " + " ".join(errs), flush=True)
+        print(row + " " + " ".join(errs) + f"  (load {_loadavg()})", flush=True)
 
     print("# fitted growth exponent t ~ N^a of the wall / ideal times (all sizes; sizes >= 32), cost constants")
     for (backend, eps), name in zip(backends, names):
@@ -159,18 +164,33 @@ def main(argv=None):
             model = far.predicted_seconds(Q, M, eps, 1)[1] / (M + Q)
             line += f"{c * 1e6:.0f} us CPU per point (far.py model: {model * 1e6:.0f})"
         print(line)
-    # crossover of power laws fitted to the ideal times of the 3 largest sizes
+    # crossover: measured (log-linear interpolation between sizes where both ran), else power laws
+    # fitted to the 3 largest sizes of each backend
     nd = np.array(done["direct"], float)
     for (backend, eps), name in list(zip(backends, names))[1:]:
         nf = np.array(done[name], float)
         if nd.size < 2 or nf.size < 2:
             continue
-        td, tf = np.array(ideal["direct"]), np.array(ideal[name])
-        ad, af = fit_exponent(nd[-3:], td[-3:]), fit_exponent(nf[-3:], tf[-3:])
-        if ad > af:
-            lnc = (np.log(tf[-1]) - af * np.log(nf[-1]) - np.log(td[-1]) + ad * np.log(nd[-1])) / (ad - af)
-            txt = f"{np.exp(lnc):.0f}" if lnc < np.log(1e5) else "> 1e5"
-            print(f"# crossover direct ({threads} threads) / {name}, ideal times: N ~ {txt} vesicles")
+        both = [n for n in nd if n in nf]
+        wd = dict(zip(nd, wall["direct"]))
+        wf = dict(zip(nf, wall[name]))
+        meas = None
+        for n0, n1 in zip(both[:-1], both[1:]):
+            r0, r1 = np.log(wf[n0] / wd[n0]), np.log(wf[n1] / wd[n1])
+            if r0 > 0 >= r1:
+                meas = np.exp(np.log(n0) + r0 / (r0 - r1) * (np.log(n1) - np.log(n0)))
+        if both and wf[both[0]] <= wd[both[0]]:
+            print(f"# crossover direct ({threads} threads) / {name}: the FMM is already faster at N = {both[0]:.0f}")
+        elif meas is not None:
+            print(f"# crossover direct ({threads} threads) / {name}, measured wall times: N ~ {meas:.0f} vesicles")
+        for kind, times in (("wall", wall), ("ideal", ideal)):
+            td, tf = np.array(times["direct"]), np.array(times[name])
+            ad, af = fit_exponent(nd[-3:], td[-3:]), fit_exponent(nf[-3:], tf[-3:])
+            if ad > af:
+                lnc = (np.log(tf[-1]) - af * np.log(nf[-1]) - np.log(td[-1]) + ad * np.log(nd[-1])) / (ad - af)
+                txt = f"{np.exp(lnc):.0f}" if lnc < np.log(1e5) else "> 1e5"
+                print(f"# crossover direct ({threads} threads) / {name}, power laws of the {kind} times "
+                      f"(3 largest sizes: a = {ad:.2f} / {af:.2f}): N ~ {txt} vesicles")
     for eps in args.eps:
         nmodel = next((n for n in range(1, 100000)
                        if far.choose_backend(n * Q, n * M, "auto", eps) == "fmm"), None)

@@ -55,10 +55,14 @@ BACKENDS = ("direct", "fmm", "auto")
 DEFAULT_EPS = 1e-8
 # Cost model of "auto", measured with benchmarks/far_field.py on this machine (docs/far_field.md):
 # direct sum: seconds per (target, source) pair for ONE OpenMP thread (divided by the threads);
-DIRECT_SECONDS_PER_PAIR = 3.6e-9
 # FMM (fmm3dpy wheel, serial): seconds per point (sources + targets) at the measured eps,
 # interpolated in log(eps) in between, clamped outside.
-FMM_SECONDS_PER_POINT = {1e-6: 1.0e-4, 1e-8: 2.0e-4, 1e-10: 2.5e-4}
+# Re-measured (OMP_NUM_THREADS=1 benchmarks/far_field.py, p = 16, q = 32, N = 8..128, load ~3.5
+# on 2 cores; docs/far_field.md): 3.91 ns CPU per pair (direct, N = 128; was 3.6) and 235 us CPU
+# per point (fmm eps 1e-8, N = 64; was 200); measured crossover N ~ 150 vesicles (power laws of
+# the wall and CPU times), the model below switches at N = 139 (it said 129 before).
+DIRECT_SECONDS_PER_PAIR = 3.9e-9
+FMM_SECONDS_PER_POINT = {1e-6: 1.0e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
 # targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
 # moved onto it (FMM backend only)
 SNAP_TOL = 1e-10

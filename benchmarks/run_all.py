@@ -1,0 +1,72 @@
+"""Run the benchmark scripts of benchmarks/ with quick settings (`make bench`); exit 1 if one fails.
+
+Each script runs in its own process (the Python running this file, the environment as given:
+OMP_NUM_THREADS is passed through, the Makefile exports 2), its output is printed as it comes,
+and a summary with the status and wall time of each follows.  The quick settings take a few
+minutes on 2 cores; --full runs every script with its own defaults instead (the runs of
+docs/benchmarks.md, docs/far_field.md, docs/transforms.md, docs/dynamics.md: about half an hour
+or more).  sht_ducc0.py is skipped (and said so) when ducc0 does not import.
+
+    .venv/bin/python benchmarks/run_all.py                     # what `make bench` runs
+    .venv/bin/python benchmarks/run_all.py --only self_operator far_field
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/run_all.py --full
+"""
+import argparse
+import importlib.util
+import os
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+# script, quick arguments
+SCRIPTS = [
+    ("sht_ducc0.py", ["--p", "8", "16", "--batch", "1", "100", "--repeat", "2"]),
+    ("self_operator.py", ["--degrees", "8", "16", "--setup-ves", "1", "--stream-mb", "0", "--rounds", "3"]),
+    ("far_field.py", ["--sizes", "4", "8", "16", "--repeat", "1", "--max-seconds", "60", "--budget", "120"]),
+    ("gmres_iterations.py", ["--sizes", "2", "8", "--degrees", "8"]),
+]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--full", action="store_true", help="each script with its own (slow) defaults")
+    ap.add_argument("--only", nargs="+", default=None, help="script names (with or without .py) to run")
+    args = ap.parse_args(argv)
+    only = None if args.only is None else {n if n.endswith(".py") else n + ".py" for n in args.only}
+    unknown = (only or set()) - {s for s, _ in SCRIPTS}
+    if unknown:
+        ap.error(f"unknown scripts {sorted(unknown)}; known: {[s for s, _ in SCRIPTS]}")
+
+    print(f"# benchmarks/run_all.py ({'full' if args.full else 'quick'} settings); python {sys.executable}; "
+          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; {os.cpu_count()} cpus; "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}", flush=True)
+    results = []
+    for script, quick in SCRIPTS:
+        if only is not None and script not in only:
+            continue
+        if script == "sht_ducc0.py" and importlib.util.find_spec("ducc0") is None:
+            print(f"\n===== {script}: skipped (ducc0 does not import)", flush=True)
+            results.append((script, "skipped (no ducc0)", 0.0))
+            continue
+        cmd = [sys.executable, os.path.join(HERE, script)] + ([] if args.full else quick)
+        print(f"\n===== {' '.join([os.path.relpath(cmd[1])] + cmd[2:])}", flush=True)
+        t0 = time.perf_counter()
+        rc = subprocess.call(cmd, cwd=os.path.dirname(HERE))
+        dt = time.perf_counter() - t0
+        results.append((script, "ok" if rc == 0 else f"FAILED (exit status {rc})", dt))
+
+    print("\n# summary")
+    for script, status, dt in results:
+        print(f"#   {script:<22} {status:<22} {dt:7.1f} s")
+    print(f"# load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    failed = [s for s, status, _ in results if status.startswith("FAILED")]
+    if failed:
+        print(f"# {len(failed)} benchmark(s) failed: {', '.join(failed)}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
