@@ -218,3 +218,162 @@ def test_reparameterization_changes_shape_at_discretization_level(p):
     assert dV < {8: 1e-4, 12: 1e-5, 16: 1e-6}[p]
     if p == 16 and 8 in REPARAM_SHAPE_CHANGE:                      # the change converges with p
         assert REPARAM_SHAPE_CHANGE[16] < REPARAM_SHAPE_CHANGE[8] / 20
+
+
+# ------------------------------------------------------------------ 3. collisions
+def _pair(dx, dz, p, T, extra="", dt=0.05, every=0.1, kb=0.05):
+    return f"""
+title = "pair"
+{extra}
+[flow]
+type = "shear"
+rate = 1.0
+[discretization]
+p = {p}
+[time]
+horizon = {T}
+dt = {dt}
+[output]
+every = {every}
+[[vesicle]]
+shape = "oblate"
+reduced_volume = 0.9
+center = [{-dx}, 0.0, {dz}]
+bending_modulus = {kb}
+[[vesicle]]
+shape = "oblate"
+reduced_volume = 0.9
+center = [{dx}, 0.0, {-dz}]
+bending_modulus = {kb}
+"""
+
+
+def _run_pair(text, **options):
+    sc = S.parse_scene(text)
+    opts = O.read_options(O.dict_getter(options), sc)
+    rec = Recorder(opts["q_near"])
+    run = Run(sc, opts, writer=rec)
+    failure = None
+    try:
+        run.run()
+    except NumericalFailure as e:
+        failure = str(e)
+    return run, rec, failure
+
+
+def test_collision_rejections_recover_then_contact_without_repulsion():
+    """Oblate pair (v = 0.9), centres (-1.3, 0, 0.3), (1.3, 0, -0.3), p = 6, no repulsion,
+    -ves_adapt_tol 0.05, reparameterization off (with it on, the post-step moves the pair into
+    contact earlier: see test_post_step_keeps_accepted_state_out_of_contact).
+    Measured: collision rejections at t = 5.19 (dt 0.26) and 5.37 (dt 0.078) are recovered
+    (the halved steps are accepted; every frame has gap > 0 and no contact), but the gap keeps
+    closing (0.0135 at t = 5.19, 6e-4 at 5.41) and at t = 5.45 every step down to dt = 1e-6 is
+    a collision: exit by NumericalFailure.  No offset in 0.25-0.45 gave a clean run with
+    collision rejections: closer (dz <= 0.3) ends in contact, farther (dz >= 0.35) passes with
+    gap >= 0.02 and no collision rejection at all."""
+    run, rec, failure = _run_pair(_pair(1.3, 0.3, 6, 5.8),
+                                  **{"-ves_reparam": "off", "-ves_adapt_tol": 0.05})
+    rows = rec.steps
+    coll = [i for i, r in enumerate(rows) if r[5] == "collision"]
+    recovered = [i for i in coll if i + 1 < len(rows) and rows[i + 1][2]]
+    gaps = [f["min_gap"] for f in rec.frames]
+    report("pair without repulsion, p = 6, dz = 0.3", t_end=run.t, counts=run.counts,
+           rejections=rejections(rec), recovered_collisions=len(recovered),
+           first_collisions=[(round(rows[i][0], 3), round(rows[i][1], 4)) for i in coll[:3]],
+           min_gap=min(gaps), max_contacts=max(f["contacts"] for f in rec.frames), failure=failure)
+    assert len(recovered) >= 1                                  # a rejected collision, then an accepted step
+    assert min(gaps) > 0 and max(f["contacts"] for f in rec.frames) == 0
+    assert failure is not None and "collision" in failure       # ... but p = 6 cannot keep them apart
+    assert min(gaps) < 5e-3
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="library bug: reparameterization after the collision check "
+                                       "moves an accepted pair into contact")
+def test_post_step_keeps_accepted_state_out_of_contact():
+    """Default options (reparameterization on), p = 6, dz = 0.45, no repulsion.  Measured: the
+    post-step (reparameterize, then correct) of each accepted step near contact shrinks the gap by
+    ~8e-3 (9.6e-3 -> 7.7e-4 at t = 4.28), and at t = 4.30 it turns gap 1.7e-4 into -4.7e-3 (two
+    grid points inside the other vesicle): an accepted frame with contacts, then 10 collision
+    rejections down to dt = 2e-6 and NumericalFailure.  -ves_correct none: the same
+    (gap 2.8e-3 -> -6.6e-3); -ves_reparam off: the run ends at T = 6 with gap >= 0.036."""
+    run, rec, failure = _run_pair(_pair(1.3, 0.45, 6, 6.0))
+    gaps = [f["min_gap"] for f in rec.frames]
+    report("pair, default options, p = 6, dz = 0.45", t_end=run.t, rejections=rejections(rec),
+           min_gap=min(gaps), max_contacts=max(f["contacts"] for f in rec.frames), failure=failure)
+    assert failure is None and min(gaps) > 0 and max(f["contacts"] for f in rec.frames) == 0
+
+
+# ------------------------------------------------------------------ 4. adaptive stepping
+ADAPT_TOLS = (1.6e-2, 8e-3, 4e-3, 2e-3, 1e-3)
+
+
+def _adapt(tols, ref_tol, reparam):
+    """Prolate v = 0.8 tilted 70 degrees, centre (0, 0, 0.5), in shear, p = 6, T = 2, doubling
+    with -ves_adapt_tol E; error = Hausdorff distance of the final surface to the reference's."""
+    text = one(SHEAR, 6, 2.0, 0.05, every=2.0, z=0.5, angle=70.0)
+    res = {}
+    for tol in (ref_tol,) + tuple(tols):
+        run, rec = simulate(text, **{"-ves_adapt": "doubling", "-ves_adapt_tol": tol, "-ves_reparam": reparam})
+        res[tol] = (run.counts["accepted"], run.stepper.coeffs[0].copy())
+    cref = res[ref_tol][1]
+    steps = np.array([res[t][0] for t in tols], dtype=float)
+    err = np.array([hausdorff(res[t][1], cref, 6, 24) for t in tols])
+    s_steps = np.polyfit(np.log(tols), np.log(steps), 1)[0]
+    s_err = np.polyfit(np.log(tols), np.log(err), 1)[0]
+    report(f"adaptive stepping, reparam {reparam}, reference E = {ref_tol:g} ({res[ref_tol][0]} steps)",
+           E=list(tols), steps=steps.astype(int).tolist(), error=[float(f"{e:.3g}") for e in err],
+           slope_steps=s_steps, slope_error=s_err)
+    return steps, err, s_steps, s_err
+
+
+def test_adaptive_rates_fast():
+    """Three tolerances, reference 1e-3, reparameterization off (with it on, the error does not
+    converge: see test_adaptive_rates)."""
+    steps, err, s_steps, s_err = _adapt((1.6e-2, 8e-3, 4e-3), 1e-3, "off")
+    assert -1.2 < s_steps < -0.8
+    assert 0.7 < s_err < 1.4
+    assert err.max() < 2e-2
+
+
+@pytest.mark.slow
+def test_adaptive_rates():
+    """Measured (reparameterization off, reference E = 2.5e-4, 1011 steps): steps 16, 32, 63,
+    127, 253 (slope -1.00), error 7.4e-3, 3.5e-3, 1.7e-3, 8.0e-4, 3.4e-4 (slope 1.10; the
+    reference's own error, ~E_ref, pulls the smallest E down).  With reparameterization on
+    (the default): steps the same (16 ... 242), error 4.9e-3, 5.3e-3, 6.7e-3, 6.9e-3, 5.6e-3 (no
+    convergence): the reparameterization's shape change (test_reparameterization_changes_shape_
+    at_discretization_level) accumulates over the steps and dominates the time error."""
+    steps, err, s_steps, s_err = _adapt(ADAPT_TOLS, 2.5e-4, "off")
+    assert -1.2 < s_steps < -0.8
+    assert 0.8 < s_err < 1.3
+    steps_on, err_on, _, _ = _adapt(ADAPT_TOLS, 2.5e-4, "on")    # printed, see the docstring
+    assert abs(np.log(steps_on / steps)).max() < 0.2            # the step count does not depend on it
+
+
+def _repulsion_pair(p):
+    """The pair of test_post_step_keeps_accepted_state_out_of_contact (dz = 0.45, which touches
+    without repulsion at t = 4.30) with [repulsion] radius = 0.04, to just past the closest
+    approach (t ~ 4.4)."""
+    run, rec, failure = _run_pair(_pair(1.3, 0.45, p, 4.6, extra="[repulsion]\nradius = 0.04"))
+    gaps = [f["min_gap"] for f in rec.frames]
+    rej = rejections(rec)
+    report(f"pair with repulsion R = 0.04, p = {p}, dz = 0.45", t_end=run.t, counts=run.counts,
+           rejections=rej, min_gap=min(gaps), max_contacts=max(f["contacts"] for f in rec.frames),
+           failure=failure)
+    assert failure is None and run.t == pytest.approx(4.6)
+    assert rej.get("collision", 0) == 0
+    assert min(gaps) > 0 and max(f["contacts"] for f in rec.frames) == 0
+    return min(gaps)
+
+
+def test_repulsion_no_collision_rejections_p8():
+    """Measured: 0 collision rejections (2 error-estimate ones), min gap 0.022 (inside R) at t = 4.43."""
+    gap = _repulsion_pair(8)
+    assert gap < 0.04                                            # a real close approach, inside R
+
+
+@pytest.mark.slow
+def test_repulsion_no_collision_rejections_p12():
+    gap = _repulsion_pair(12)
+    assert gap < 0.06
