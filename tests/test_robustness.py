@@ -288,15 +288,15 @@ def test_collision_rejections_recover_then_contact_without_repulsion():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="library bug: reparameterization after the collision check "
-                                       "moves an accepted pair into contact")
 def test_post_step_keeps_accepted_state_out_of_contact():
-    """Default options (reparameterization on), p = 6, dz = 0.45, no repulsion.  Measured: the
-    post-step (reparameterize, then correct) of each accepted step near contact shrinks the gap by
-    ~8e-3 (9.6e-3 -> 7.7e-4 at t = 4.28), and at t = 4.30 it turns gap 1.7e-4 into -4.7e-3 (two
-    grid points inside the other vesicle): an accepted frame with contacts, then 10 collision
-    rejections down to dt = 2e-6 and NumericalFailure.  -ves_correct none: the same
-    (gap 2.8e-3 -> -6.6e-3); -ves_reparam off: the run ends at T = 6 with gap >= 0.036."""
+    """Default options (reparameterization on), p = 6, dz = 0.45, no repulsion.  Before the fix
+    the post-step (reparameterize, then correct) ran after the collision check and near contact
+    shrank the gap by ~8e-3 per step (9.6e-3 -> 7.7e-4 at t = 4.28; at t = 4.30 gap 1.7e-4 ->
+    -4.7e-3, two grid points inside the other vesicle), then 10 collision rejections down to
+    dt = 2e-6 and NumericalFailure.  Now the collision check sees the post-processed state, a
+    step whose reparameterization alone makes contact is kept without it, and the
+    reparameterized grid points are projected back onto the surface.  Measured after the fix:
+    the run ends at T = 6, min gap 0.0027, no contact, no collision rejection."""
     run, rec, failure = _run_pair(_pair(1.3, 0.45, 6, 6.0))
     gaps = [f["min_gap"] for f in rec.frames]
     report("pair, default options, p = 6, dz = 0.45", t_end=run.t, rejections=rejections(rec),

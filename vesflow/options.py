@@ -100,12 +100,10 @@ REGISTRY: tuple[Option, ...] = (
        ge=2, le=256, default_text="4p"),
     _O("-ves_near_factor", float, 1.0, "near-zone width h_n = factor * sqrt(A_max / q_near)", "quadrature",
        gt=0, le=10),
-    _O("-ves_far", str, "auto", "far-field sum: auto = direct up to -ves_far_direct_max vesicles in free "
-       "space, else fmm", "quadrature",
+    _O("-ves_far", str, "auto", "far-field sum: auto = the faster of direct and fmm by the cost model "
+       "measured on this machine (docs/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
        choices=("auto", "direct", "fmm", "ewald")),
-    _O("-ves_far_direct_max", int, 64, "with -ves_far auto: largest number of vesicles summed directly",
-       "quadrature", ge=0),
-    _O("-ves_far_tol", float, 1e-6, "requested relative accuracy of the fmm / ewald far-field sum",
+    _O("-ves_far_tol", float, 1e-8, "requested relative accuracy of the fmm / ewald far-field sum",
        "quadrature", gt=0, lt=1),
     _O("-ves_pc_lag", int, 5, "reuse the block preconditioner's LU factors for this many solves with the "
        "same dt (1 = refactor every solve)", "solver", ge=1, le=1000),

@@ -26,6 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
+from .layerpot.near import Projection
 
 
 def attenuation_weights(p, attenuation="n2"):
@@ -52,10 +53,32 @@ def spectral_energy(coeffs, p, attenuation="n2"):
     return np.einsum("...kc,c->...", c * c, w)
 
 
-def reparameterize(coeffs, p, dtau_max=1e-3, tol=1e-5, max_its=20, attenuation="n2", q=None):
+def project_onto(Y, X0, p):
+    """Coefficients of the closest points on the surfaces X0 of the p-grid points of Y.
+
+    A tangential move of the parameterization is tangential only to first order, and the
+    degree-p projection of the move has a normal part at its truncation error: measured at
+    p = 8 the shape moved by 3.4e-3 (Hausdorff) for a truncation error of 2.8e-4, and near
+    contact it pushed accepted pairs into each other.  Moving each grid point to its closest
+    point on the original surface (Newton projection, `lp.near.Projection`, started at the
+    point's own grid parameters) leaves the shape at X0 up to the degree-p re-expansion.
+    """
+    N = Y.shape[0]
+    T = sph.transform(p)
+    pts = np.moveaxis(T.synth(Y), -2, -1).reshape(-1, 3)                 # (N M, 3), grid order
+    th = np.repeat(T.theta, T.nlon)
+    ph = np.tile(T.phi, T.nlat)
+    ves = np.repeat(np.arange(N), T.npts)
+    pr = Projection(X0, p, pts, ves, np.tile(th, N), np.tile(ph, N))
+    on = np.where(pr.converged[:, None], pr.point, pts).reshape(N, T.npts, 3)
+    return T.analysis(np.moveaxis(on, -1, -2))
+
+
+def reparameterize(coeffs, p, dtau_max=1e-3, tol=1e-5, max_its=20, attenuation="n2", q=None, project=True):
     """Tangential gradient descent on E (paper 3.5); see the module docstring.
 
-    coeffs (N, 3, C) (or (3, C)); q is the grid of the tangential projection (2p default).
+    coeffs (N, 3, C) (or (3, C)); q is the grid of the tangential projection (2p default);
+    project: move the result's grid points back onto the original surface (`project_onto`).
     Returns (new_coeffs, iterations, energy_before (N,), energy_after (N,)); iterations is
     the number of steps taken by the slowest vesicle (energies are floats for a (3, C) input).
     """
@@ -63,6 +86,7 @@ def reparameterize(coeffs, p, dtau_max=1e-3, tol=1e-5, max_its=20, attenuation="
     single = Y.ndim == 2
     if single:
         Y = Y[None]
+    X0 = Y.copy()
     q = 2 * p if q is None else q
     T = sph.transform(p, q)
     ns, _, _ = sph.index_tables(p)
@@ -99,6 +123,8 @@ def reparameterize(coeffs, p, dtau_max=1e-3, tol=1e-5, max_its=20, attenuation="
         curv = T.analysis(II[:, None, :] * nrm)
         Y[act] += -dtau[:, None, None] * v + 0.5 * dtau[:, None, None] ** 2 * curv
         its += 1
+    if its and project:
+        Y = project_onto(Y, X0, p)
     e_after = np.einsum("vkc,c->v", Y * Y, w)
     if single:
         return Y[0], its, float(e_before[0]), float(e_after[0])

@@ -80,6 +80,7 @@ class Run:
         self.every = scene.output.every
         self.progress, self.monitor, self.log = progress, monitor, log
         self.counts = {"accepted": 0, "rejected": 0}
+        self.reparam_skipped = 0          # accepted steps whose reparameterization would have made contact
         self.rows = []
         if checkpoint is None:
             S = Surface(coeffs, self.p)
@@ -126,13 +127,23 @@ class Run:
             st.coeffs, st.time, st.last = saved
             reason = "nonfinite" if e.reason == "nan" else "ksp"
             return None, reason, getattr(e, "iterations", 0) or 0, np.inf
-        if self.opts["collision"] and st.surface.n_vesicles > 1 and collision.contacts(st.surface, self.q_near) > 0:
-            st.coeffs, st.time, st.last = saved
-            return None, "collision", its, err
         tol = self.opts["adapt_tol"]
         if adapt != "none" and err / dt > tol:
             st.coeffs, st.time, st.last = saved
             return None, "error_estimate", its, err
+        # the post-step (reparameterize, correct) changes the surface between grid points at
+        # the truncation error, which near contact is the size of the gap: check collisions on
+        # the state that will be kept, and drop the reparameterization of this step if it
+        # alone brings the surfaces into contact
+        raw = st.coeffs.copy()
+        st.coeffs = self._post_processed(raw, self.opts["reparam"])
+        if self.opts["collision"] and st.surface.n_vesicles > 1 and collision.contacts(st.surface, self.q_near) > 0:
+            if self.opts["reparam"]:
+                st.coeffs = self._post_processed(raw, False)
+                self.reparam_skipped += 1
+            if not self.opts["reparam"] or collision.contacts(st.surface, self.q_near) > 0:
+                st.coeffs, st.time, st.last = saved
+                return None, "collision", its, err
         return sol, "accepted", its, err
 
     def _next_dt(self, dt, err):
@@ -173,7 +184,6 @@ class Run:
                 self.u, self.sigma = sol.u, sol.sigma
                 if self.opts["quad_tol"] > 0:
                     self._adapt_quadrature()
-                self._post_step()
                 self.dt = self._next_dt(dt, err)
                 if self.t >= self.next_frame - 1e-12 or self.t >= self.horizon * (1 - 1e-12):
                     self._frame()
@@ -228,20 +238,20 @@ class Run:
         s.q_far = _step_q(self.q_near, max(e["near"], e["far"]), tol, lo, hi)
         self.quad_errors = e
 
-    def _post_step(self):
-        """Reparameterize, then restore area and volume (the reparameterization moves points
-        tangentially but changes A and V at the discretization error, ~1e-6; the correction after
-        it leaves them at -ves_correct_tol)."""
-        st = self.stepper
+    def _post_processed(self, coeffs, reparam):
+        """Reparameterize (if reparam), then restore area and volume (the reparameterization
+        moves points tangentially but changes A and V at the discretization error, ~1e-6; the
+        correction after it leaves them at -ves_correct_tol)."""
         o = self.opts
-        if o["reparam"]:
+        if reparam:
             with self.timers.stage("repar"):
-                st.coeffs, _, _, _ = reparameterize(st.coeffs, self.p, dtau_max=o["reparam_dtau_max"],
-                                                    tol=o["reparam_tol"], max_its=o["reparam_max_its"])
+                coeffs, _, _, _ = reparameterize(coeffs, self.p, dtau_max=o["reparam_dtau_max"],
+                                                 tol=o["reparam_tol"], max_its=o["reparam_max_its"])
         if o["correct"] == "area_volume":
             with self.timers.stage("other"):
-                st.coeffs, _, _ = correct_area_volume(st.coeffs, self.p, self.area0, self.volume0,
-                                                      tol=o["correct_tol"], max_its=o["correct_max_its"])
+                coeffs, _, _ = correct_area_volume(coeffs, self.p, self.area0, self.volume0,
+                                                   tol=o["correct_tol"], max_its=o["correct_max_its"])
+        return coeffs
 
     # ------------------------------------------------------------------ output
     def _frame(self):
