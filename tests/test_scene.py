@@ -12,6 +12,7 @@ import pytest
 
 from vesflow import options as O
 from vesflow import scene as S
+from vesflow.scene import geometry as G, packing as PK, parser as SP
 from vesflow.errors import OptionError, SceneError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -199,13 +200,13 @@ def test_spheroid_axes_edges():
 
 def test_biconcave_profile():
     # the published Evans-Fung cell (s = 1) has reduced volume ~0.644
-    area, vol = S._biconcave_area_volume(1.0)
-    assert S._reduced_volume(area, vol) == pytest.approx(0.644, abs=1e-3)
+    area, vol = G._biconcave_area_volume(1.0)
+    assert G._reduced_volume(area, vol) == pytest.approx(0.644, abs=1e-3)
     for v in (0.6, 0.65, 0.7):
         s = S.biconcave_height_scale(v)
-        assert S._reduced_volume(*S._biconcave_area_volume(s)) == pytest.approx(v, rel=1e-12)
+        assert G._reduced_volume(*G._biconcave_area_volume(s)) == pytest.approx(v, rel=1e-12)
     # the sampled surface lies on the profile and inside the enclosing spheroid
-    u = S._unit_shape("biconcave", 0.65, None)
+    u = G._unit_shape("biconcave", 0.65, None)
     pts = u.surface_points()
     a, b, c = u.axes
     assert np.all(np.sum((pts / [a, b, c]) ** 2, axis=1) <= 1 + 1e-9)
@@ -216,7 +217,7 @@ def test_biconcave_profile():
 
 
 def area_of(v):
-    return S._biconcave_area_volume(S.biconcave_height_scale(v))[0]
+    return G._biconcave_area_volume(S.biconcave_height_scale(v))[0]
 
 
 def test_euler_zyz():
@@ -225,7 +226,7 @@ def test_euler_zyz():
     assert np.allclose(S.euler_zyz((90.0, 0.0, 0.0)) @ [1, 0, 0], [0, 1, 0])        # about z
     assert np.allclose(S.euler_zyz((0.0, 90.0, 0.0)) @ [0, 0, 1], [1, 0, 0])        # about y
     for ang in [(10, 20, 30), (350, 170, 5), (0, 0, 45), (0, 180, 0)]:
-        assert np.allclose(S.euler_zyz(S._euler_from_matrix(S.euler_zyz(ang))), S.euler_zyz(ang), atol=1e-12)
+        assert np.allclose(S.euler_zyz(G._euler_from_matrix(S.euler_zyz(ang))), S.euler_zyz(ang), atol=1e-12)
 
 
 # ---------------------------------------------------------------- lattices
@@ -363,9 +364,9 @@ def test_perram_wertheim_agrees_with_sampling():
         ves = [S.Vesicle(shape="ellipsoid", axes=tuple(axes[k]), rotation=tuple(rots[k]),
                          center=tuple(d * k), reduced_volume=0.9) for k in range(2)]
         found = S.find_overlaps(ves)
-        c, rot, scale, units, enc, rb = S._arrays(ves)
-        M = S._ellipsoid_matrices(rot, enc)
-        mu = S._pw(np.array([d]), M[:1], M[1:])[0][0]
+        c, rot, scale, units, enc, rb = PK._arrays(ves)
+        M = PK._ellipsoid_matrices(rot, enc)
+        mu = PK._pw(np.array([d]), M[:1], M[1:])[0][0]
         if abs(mu - 1) < 0.01:          # too close to contact for sampling to decide
             continue
         assert bool(found) == _brute_overlap(*ves) == (mu < 1)
@@ -379,17 +380,17 @@ def test_pw_derivatives_match_finite_differences():
     MA = RA @ np.diag([1.0, 0.5, 0.3]) ** 2 @ RA.T
     MB = RB @ np.diag([0.8, 0.7, 0.2]) ** 2 @ RB.T
     r = np.array([0.7, 0.4, -0.3])
-    mu, lam, y = S._pw(r[None], MA[None], MB[None])
+    mu, lam, y = PK._pw(r[None], MA[None], MB[None])
     g_r = lam[0] * (1 - lam[0]) * y[0] / mu[0]
     g_wa = -lam[0] * (1 - lam[0]) ** 2 * np.cross(MA @ y[0], y[0]) / mu[0]
     h = 1e-6
     for k in range(3):
         e = np.eye(3)[k] * h
-        fd = (S._pw((r + e)[None], MA[None], MB[None])[0][0] - S._pw((r - e)[None], MA[None], MB[None])[0][0]) / (2 * h)
+        fd = (PK._pw((r + e)[None], MA[None], MB[None])[0][0] - PK._pw((r - e)[None], MA[None], MB[None])[0][0]) / (2 * h)
         assert fd == pytest.approx(g_r[k], rel=1e-5, abs=1e-8)
-        Rp, Rm = S._rotvec_matrices(e[None])[0], S._rotvec_matrices(-e[None])[0]
-        fa = (S._pw(r[None], (Rp @ MA @ Rp.T)[None], MB[None])[0][0]
-              - S._pw(r[None], (Rm @ MA @ Rm.T)[None], MB[None])[0][0]) / (2 * h)
+        Rp, Rm = PK._rotvec_matrices(e[None])[0], PK._rotvec_matrices(-e[None])[0]
+        fa = (PK._pw(r[None], (Rp @ MA @ Rp.T)[None], MB[None])[0][0]
+              - PK._pw(r[None], (Rm @ MA @ Rm.T)[None], MB[None])[0][0]) / (2 * h)
         assert fa == pytest.approx(g_wa[k], rel=1e-5, abs=1e-8)
 
 
@@ -402,7 +403,7 @@ def test_overlap_thresholds():
         with pytest.raises(SceneError, match=r"^vesicle\[0\] and vesicle\[1\] overlap"):
             S.parse_scene(pair(bad))
     # stacked red cells: their thickness is 2 * scale * max profile height
-    u = S._unit_shape("biconcave", 0.65, None)
+    u = G._unit_shape("biconcave", 0.65, None)
     k = 1.0 / u.r0
     thick = 2 * k * np.abs(u.surface_points()[:, 2]).max()
     S.parse_scene(pair(f"[0, 0, {thick * 1.01}]", "biconcave"))
@@ -785,7 +786,7 @@ def test_docs_list_every_key_and_option():
     doc = (ROOT / "docs" / "scene.md").read_text()
     for o in O.REGISTRY:
         assert f"`{o.name}`" in doc, o.name
-    keys = set(S._TOP) | set(S._VESICLE_KEYS) | set(S._LATTICE_KEYS) | {"period", "rate", "amplitude", "viscosity",
+    keys = set(SP._TOP) | set(SP._VESICLE_KEYS) | set(SP._LATTICE_KEYS) | {"period", "rate", "amplitude", "viscosity",
                                                                         "horizon", "dt", "every", "file", "p"}
     for k in keys:
         assert f"`{k}`" in doc or f"`[{k}]`" in doc or f"`[[{k}]]`" in doc, k

@@ -13,50 +13,17 @@ its centre and moved to its centre.
 """
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 
 import numpy as np
 from scipy.optimize import brentq
 
 from . import sph
+from .scene.geometry import EVANS_FUNG, euler_zyz, spheroid_axes  # noqa: F401 (euler_zyz re-exported)
+from .scene.model import SHAPES
 from .surface import Surface
 
-EVANS_FUNG = (0.207, 2.003, -1.123)
-SHAPES = ("sphere", "ellipsoid", "oblate", "prolate", "biconcave")
 FIT_P = 8   # every shape is exact at degree <= 5; fits are done at this degree and resampled
-
-
-def _spheroid_area(a, c):
-    if abs(a - c) < 1e-14 * a:
-        return 4.0 * np.pi * a * a
-    if c < a:  # oblate
-        e = math.sqrt(1.0 - c * c / (a * a))
-        return 2.0 * np.pi * a * a * (1.0 + (1.0 - e * e) / e * math.atanh(e))
-    e = math.sqrt(1.0 - a * a / (c * c))
-    return 2.0 * np.pi * a * a * (1.0 + c / (a * e) * math.asin(e))
-
-
-def spheroid_reduced_volume(ratio):
-    """Reduced volume of the spheroid with semi-axes (1, 1, ratio)."""
-    return 6.0 * math.sqrt(math.pi) * (4.0 / 3.0 * math.pi * ratio) / _spheroid_area(1.0, ratio) ** 1.5
-
-
-def spheroid_axes(kind, reduced_volume):
-    """Semi-axes (1, 1, c) of the oblate (c < 1) or prolate (c > 1) spheroid of reduced volume v."""
-    v = float(reduced_volume)
-    if not 0.0 < v <= 1.0:
-        raise ValueError(f"reduced_volume = {v}: must be in (0, 1]")
-    if v == 1.0:
-        return (1.0, 1.0, 1.0)
-    f = lambda c: spheroid_reduced_volume(c) - v
-    if kind == "oblate":
-        c = brentq(f, 1e-6, 1.0 - 1e-15, xtol=1e-15, rtol=1e-15)
-    elif kind == "prolate":
-        c = brentq(f, 1.0 + 1e-15, 1e6, xtol=1e-15, rtol=1e-15)
-    else:
-        raise ValueError(f"spheroid kind must be oblate or prolate, got {kind!r}")
-    return (1.0, 1.0, c)
 
 
 def _grid_fit(fn, p=FIT_P):
@@ -87,7 +54,9 @@ def _reduced_volume_of(coeffs, p):
 
 @lru_cache(maxsize=64)
 def biconcave_height_scale(reduced_volume):
-    """Height factor s of the Evans-Fung profile giving the requested reduced volume."""
+    """Height factor s of the Evans-Fung profile giving the requested reduced volume *of the
+    degree-16 expansion* (so that generated shapes have it to 1e-8); scene.geometry's version
+    solves the exact profile, for the overlap checks of the scene."""
     v = float(reduced_volume)
     f = lambda s: _reduced_volume_of(biconcave_coeffs(s, 16), 16) - v
     lo, hi = 0.4, 1.6
@@ -95,17 +64,6 @@ def biconcave_height_scale(reduced_volume):
         raise ValueError(f"reduced_volume = {v}: the biconcave shape reaches only "
                          f"[{f(lo) + v:.3f}, {f(hi) + v:.3f}]")
     return brentq(f, lo, hi, xtol=1e-14)
-
-
-def euler_zyz(angles_deg):
-    """Rotation matrix Rz(alpha) Ry(beta) Rz(gamma) for ZYZ Euler angles in degrees."""
-    a, b, g = np.radians(angles_deg)
-    def rz(t):
-        c, s = np.cos(t), np.sin(t)
-        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    cb, sb = np.cos(b), np.sin(b)
-    ry = np.array([[cb, 0.0, sb], [0.0, 1.0, 0.0], [-sb, 0.0, cb]])
-    return rz(a) @ ry @ rz(g)
 
 
 def unit_shape_coeffs(shape, p, reduced_volume=None, axes=None):

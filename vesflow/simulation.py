@@ -12,7 +12,7 @@ import time as _time
 
 import numpy as np
 
-from . import __version__, collision, sph
+from . import collision, sph
 from .correction import correct_area_volume
 from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
@@ -201,7 +201,7 @@ class Run:
                     raise NumericalFailure(
                         f"step at t = {self.t:.6g} rejected {rejects_in_row} times in a row (last: {reason}, "
                         f"dt = {dt:.3e}); the last good state is saved" +
-                        (f" in the checkpoint" if self.writer is not None else "") +
+                        (" in the checkpoint" if self.writer is not None else "") +
                         (f"; error per unit time {err / dt:.3g} > -ves_adapt_tol {self.opts['adapt_tol']:g} even "
                          "at this dt: a floor of spatial error (p, q) that smaller steps cannot reduce"
                          if reason == "error_estimate" and dt > 0 else ""))

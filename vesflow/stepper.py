@@ -16,7 +16,7 @@ from . import forces, sph
 from .errors import ConvergenceError
 from .flows import background_velocity
 from .layerpot.evaluator import LayerPotentials, Settings
-from .operator import StepOperator, VesicleParams
+from .operator import StepOperator
 from .surface import Surface
 from .timing import Timers
 

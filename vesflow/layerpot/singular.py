@@ -81,7 +81,7 @@ class SelfOperators:
     def _assemble(self, X, want_single, want_double):
         p, q = self.p, self.q
         Tp, Tq = sph.transform(p), sph.transform(p, q)
-        C, K = sph.n_coeffs(p), sph.n_full(p)
+        C = sph.n_coeffs(p)
         Pm = analysis_matrix(p)                                        # (C, M)
         lam_w = graham_sloan_weights(q) / np.repeat(Tq.sin_theta, Tq.nlon)  # Lambda / sin(theta)
         Xt_grid = np.moveaxis(Tp.synth(X), 0, -1).reshape(Tp.nlat, Tp.nlon, 3)
