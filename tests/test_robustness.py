@@ -11,48 +11,22 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from vesflow import collision, options as O, scene as S, shapes, sph, study
-from vesflow.errors import NumericalFailure
+from vesflow import shapes, sph
 from vesflow.layerpot.near import Projection
-from vesflow.reparam import reparameterize, spectral_energy
-from vesflow.simulation import Run
+from vesflow.reparam import reparameterize
 from vesflow.surface import Surface
+
+from . import harness
 
 
 
 # ------------------------------------------------------------------ helpers
-class Recorder(study.Recorder):
-    """study.Recorder plus the mesh-quality energy E (vesflow.reparam.spectral_energy) and the
-    number of grid points on or behind another surface, at every frame."""
-
-    def write_frame(self, *, coefficients, **kw):
-        super().write_frame(coefficients=coefficients, **kw)
-        p = int(round(np.sqrt(coefficients.shape[-1] + 1))) - 1
-        self.frames[-1]["mesh_energy"] = spectral_energy(coefficients, p).tolist()
-        surf = Surface(coefficients, p)
-        self.frames[-1]["contacts"] = collision.contacts(surf, self.q_gap) if surf.n_vesicles > 1 else 0
-
-
-def simulate(text, **options):
-    sc = S.parse_scene(text)
-    opts = O.read_options(O.dict_getter(options), sc)
-    rec = Recorder(opts["q_near"])
-    run = Run(sc, opts, writer=rec)
-    run.run()
-    return run, rec
+Recorder, simulate, rejections = harness.Recorder, harness.simulate, harness.rejections
 
 
 def report(name, **figures):
     print(f"\n[robustness] {name}: " + ", ".join(
         f"{k} = {v:.3g}" if isinstance(v, float) else f"{k} = {v}" for k, v in figures.items()))
-
-
-def rejections(rec):
-    out = {}
-    for r in rec.steps:
-        if not r[2]:
-            out[r[5]] = out.get(r[5], 0) + 1
-    return out
 
 
 def drift(run, rec):
@@ -221,44 +195,12 @@ def test_reparameterization_changes_shape_at_discretization_level(p):
 
 
 # ------------------------------------------------------------------ 3. collisions
-def _pair(dx, dz, p, T, extra="", dt=0.05, every=0.1, kb=0.05):
-    return f"""
-title = "pair"
-{extra}
-[flow]
-type = "shear"
-rate = 1.0
-[discretization]
-p = {p}
-[time]
-horizon = {T}
-dt = {dt}
-[output]
-every = {every}
-[[vesicle]]
-shape = "oblate"
-reduced_volume = 0.9
-center = [{-dx}, 0.0, {dz}]
-bending_modulus = {kb}
-[[vesicle]]
-shape = "oblate"
-reduced_volume = 0.9
-center = [{dx}, 0.0, {-dz}]
-bending_modulus = {kb}
-"""
+def _pair(dx, dz, p, T, extra=""):
+    return harness.pair_scene(dx, dz, p, T, every=0.1, extra=extra)
 
 
 def _run_pair(text, **options):
-    sc = S.parse_scene(text)
-    opts = O.read_options(O.dict_getter(options), sc)
-    rec = Recorder(opts["q_near"])
-    run = Run(sc, opts, writer=rec)
-    failure = None
-    try:
-        run.run()
-    except NumericalFailure as e:
-        failure = str(e)
-    return run, rec, failure
+    return harness.simulate(text, allow_failure=True, **options)
 
 
 def test_close_pair_without_repulsion_ends_without_contact():

@@ -12,35 +12,26 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vesflow import collision, options as O, scene as S, study
-from vesflow.errors import ConvergenceError, NumericalFailure
-from vesflow.reparam import spectral_energy
+from vesflow import options as O, scene as S
+from vesflow.errors import ConvergenceError
 from vesflow.simulation import Run
 from vesflow.stepper import Stepper
 from vesflow.surface import Surface
 
+from . import harness
+
 pytestmark = pytest.mark.stability
 
 
-class Recorder(study.Recorder):
-    """study.Recorder plus the mesh-quality energy and the contact count at every frame."""
+class Recorder(harness.Recorder):
+    """harness.Recorder plus the long-axis angle in the shear plane."""
 
-    def write_frame(self, *, coefficients, **kw):
-        super().write_frame(coefficients=coefficients, **kw)
-        p = int(round(np.sqrt(coefficients.shape[-1] + 1))) - 1
-        self.frames[-1]["mesh_energy"] = spectral_energy(coefficients, p).tolist()
-        surf = Surface(coefficients, p)
-        self.frames[-1]["contacts"] = collision.contacts(surf, self.q_gap) if surf.n_vesicles > 1 else 0
-        self.frames[-1]["angle"] = _long_axis_angle(coefficients, p)
+    def frame_extras(self, coefficients, p):
+        return {"angle": _long_axis_angle(coefficients, p)}
 
 
 def simulate(text, **options):
-    sc = S.parse_scene(text)
-    opts = O.read_options(O.dict_getter(options), sc)
-    rec = Recorder(opts["q_near"])
-    run = Run(sc, opts, writer=rec)
-    run.run()
-    return run, rec
+    return harness.simulate(text, recorder=Recorder, **options)
 
 
 def invariants(name, run, rec, *, area_tol=1e-6, mesh_factor=5.0, box=50.0):
@@ -73,35 +64,10 @@ def invariants(name, run, rec, *, area_tol=1e-6, mesh_factor=5.0, box=50.0):
     return inv
 
 
-def _pair(shape_extra, dx, dz, p, T, dt=0.05, every=0.05, kb=0.05, extra=""):
-    return f"""
-title = "pair"
-{extra}
-[flow]
-type = "shear"
-rate = 1.0
-[discretization]
-p = {p}
-[time]
-horizon = {T}
-dt = {dt}
-[output]
-every = {every}
-[[vesicle]]
-{shape_extra}
-center = [{-dx}, 0.0, {dz}]
-bending_modulus = {kb}
-[[vesicle]]
-{shape_extra}
-center = [{dx}, 0.0, {-dz}]
-bending_modulus = {kb}
-"""
-
-
 # ------------------------------------------------------------------ near contact
 def test_close_pair_in_shear():
     """Two vesicles starting 3.5% of their radius apart, sheared past each other: no crossing."""
-    text = _pair('shape = "oblate"\nreduced_volume = 0.9', 0.3, 0.64, p=8, T=0.3, every=0.05)
+    text = harness.pair_scene(0.3, 0.64, p=8, T=0.3)
     run, rec = simulate(text)
     inv = invariants("close pair (start gap 3.5% of the radius) in shear", run, rec)
     assert inv["min_gap"] < 0.05
@@ -116,7 +82,7 @@ def test_near_contact_in_shear():
     has a floor, err / dt ~ 0.012 > E/T = 0.01 as dt -> 1e-6: the near-singular evaluation at gaps
     far below the grid spacing (0.4 at p = 8) is not resolved, and the run stops with exit 3 and
     its last good state (the failure path tested below) instead of crossing."""
-    text = _pair('shape = "oblate"\nreduced_volume = 0.9', 1.25, 0.1, p=8, T=5.25, every=0.05, kb=1.0,
+    text = harness.pair_scene(1.25, 0.1, p=8, T=5.25, kb=1.0,
                  extra="[repulsion]\nradius = 0.01")
     run, rec = simulate(text)
     inv = invariants("near contact in shear", run, rec)
