@@ -64,7 +64,7 @@ def truncation_estimate(coeffs, p):
     return np.sqrt(np.einsum("vkc,vkc->v", c[..., top], c[..., top]))
 
 
-def project_onto(Y, X0, p, omega=1.5, rtol=0.01, stall=0.8, max_its=30):
+def project_onto(Y, X0, p, omega=1.5, rtol=0.1, stall=0.8, max_its=10):
     """Degree-p surfaces Y whose p-grid points lie on the surfaces X0 (alternating projections).
 
     A tangential move of the parameterization is tangential only to first order, and its
@@ -76,8 +76,9 @@ def project_onto(Y, X0, p, omega=1.5, rtol=0.01, stall=0.8, max_its=30):
     over-relax by omega (the re-expansion keeps ~60% of a correction, so omega = 1 converges
     at a rate ~0.6, omega = 1.5 twice as fast).  Stops per vesicle when the largest grid-point
     distance to X0 is below rtol x `truncation_estimate(X0)` or no longer falls by `stall`.
-    Measured on the distorted prolate: the shape change falls to 1.1e-4 / 4.4e-6 / 2.4e-6,
-    below the truncation error at p = 8 and 12 (tests/test_robustness.py).
+    Measured on the distorted prolate: the shape change falls to 2.1e-4 / 4.4e-6 / 2.4e-6,
+    below the truncation error at p = 8 and 12 (tests/test_robustness.py); cost at p = 8 in a
+    shear run ~1 step's worth per step (docs/robustness.md).
     """
     Y = np.array(Y, dtype=float)
     N = Y.shape[0]
