@@ -134,14 +134,22 @@ class Run:
         # the post-step (reparameterize, correct) changes the surface between grid points at
         # the truncation error, which near contact is the size of the gap: check collisions on
         # the state that will be kept, and drop the reparameterization of this step if it
-        # alone brings the surfaces into contact
+        # alone brings the surfaces into contact.  In between, the reparameterization with its
+        # projection iterated (`reparam.project_onto`: shape change below the truncation error,
+        # not used everywhere because it keeps the descent from converging, docs/robustness.md)
         raw = st.coeffs.copy()
         st.coeffs = self._post_processed(raw, self.opts["reparam"])
-        if self.opts["collision"] and st.surface.n_vesicles > 1 and collision.contacts(st.surface, self.q_near) > 0:
+        check = self.opts["collision"] and st.surface.n_vesicles > 1
+        if check and collision.contacts(st.surface, self.q_near) > 0:
+            touching = True
             if self.opts["reparam"]:
-                st.coeffs = self._post_processed(raw, False)
-                self.reparam_skipped += 1
-            if not self.opts["reparam"] or collision.contacts(st.surface, self.q_near) > 0:
+                st.coeffs = self._post_processed(raw, True, project_its=10)
+                touching = collision.contacts(st.surface, self.q_near) > 0
+                if touching:
+                    st.coeffs = self._post_processed(raw, False)
+                    self.reparam_skipped += 1
+                    touching = collision.contacts(st.surface, self.q_near) > 0
+            if touching:
                 st.coeffs, st.time, st.last = saved
                 return None, "collision", its, err
         return sol, "accepted", its, err
@@ -238,7 +246,7 @@ class Run:
         s.q_far = _step_q(self.q_near, max(e["near"], e["far"]), tol, lo, hi)
         self.quad_errors = e
 
-    def _post_processed(self, coeffs, reparam):
+    def _post_processed(self, coeffs, reparam, project_its=1):
         """Reparameterize (if reparam), then restore area and volume (the reparameterization
         moves points tangentially but changes A and V at the discretization error, ~1e-6; the
         correction after it leaves them at -ves_correct_tol)."""
@@ -246,7 +254,8 @@ class Run:
         if reparam:
             with self.timers.stage("repar"):
                 coeffs, _, _, _ = reparameterize(coeffs, self.p, dtau_max=o["reparam_dtau_max"],
-                                                 tol=o["reparam_tol"], max_its=o["reparam_max_its"])
+                                                 tol=o["reparam_tol"], max_its=o["reparam_max_its"],
+                                                 project_its=project_its)
         if o["correct"] == "area_volume":
             with self.timers.stage("other"):
                 coeffs, _, _ = correct_area_volume(coeffs, self.p, self.area0, self.volume0,
