@@ -20,9 +20,11 @@ tangential step leaves the surface by (dtau^2 / 2) II(v, v); with it the area an
 drift of the reparameterization drops from ~2e-6 to ~1e-8 per 20 steps of 1e-3.
 The tangential projection is formed on the upsampled q = 2p grid (the product with n is
 not band-limited; projecting from the p-grid aliases and moves the shape 2-6x more).
-Finally the grid points are put back on the original surface (`project_onto`, iterated):
-the re-expansion at degree p is a least-squares fit that does not pass through the moved
-points, and one projection left the shape 1.8e-3 off at p = 8 (truncation error 2.8e-4).
+Finally the grid points are put back on the original surface (`project_onto`): once per
+call in a run (1.8e-3 shape change on a badly parameterized prolate at p = 8, truncation
+error 2.8e-4; in a shear run the change equals the run's discretization error), or iterated
+(project_its > 1: 2.1e-4), which the run uses only near contact: at every step it keeps the
+descent from converging (docs/robustness.md section 2).
 """
 from __future__ import annotations
 
@@ -74,14 +76,13 @@ def project_onto(Y, X0, p, omega=1.0, rtol=0.1, stall=0.8, max_its=1):
     degree-p re-expansion has a normal part: unprojected, the distorted prolate of the tests
     moved by 3.4e-3 / 4.6e-4 / 6.9e-5 (Hausdorff) at p = 8 / 12 / 16 for truncation errors of
     2.8e-4 / 7e-6 / 1.8e-7, and near contact that pushed accepted pairs into each other.  One
-    iteration: move every grid point to its closest point on X0 (Newton projection,
+    iteration (max_its of them): move every grid point to its closest point on X0 (Newton projection,
     `lp.near.Projection`, started at the previous closest point), re-expand at degree p, and
     over-relax by omega (the re-expansion keeps ~60% of a correction, so omega = 1 converges
     at a rate ~0.6, omega = 1.5 twice as fast).  Stops per vesicle when the largest grid-point
     distance to X0 is below rtol x `truncation_estimate(X0)` or no longer falls by `stall`.
-    Measured on the distorted prolate: the shape change falls to 2.1e-4 / 4.4e-6 / 2.4e-6,
-    below the truncation error at p = 8 and 12 (tests/test_robustness.py); cost at p = 8 in a
-    shear run ~1 step's worth per step (docs/robustness.md).
+    Measured on the distorted prolate, one / iterated (max_its = 10, omega = 1.5): shape change
+    1.8e-3 / 2.1e-4 at p = 8, 2.1e-4 / 4.4e-6 at p = 12 (truncation error 2.8e-4, 7e-6).
     """
     Y = np.array(Y, dtype=float)
     N = Y.shape[0]
