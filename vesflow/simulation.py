@@ -147,8 +147,8 @@ class Run:
                 touching = collision.contacts(st.surface, self.q_near) > 0
                 if touching:
                     st.coeffs = self._post_processed(raw, False)
-                    self.reparam_skipped += 1
                     touching = collision.contacts(st.surface, self.q_near) > 0
+                    self.reparam_skipped += int(not touching)
             if touching:
                 st.coeffs, st.time, st.last = saved
                 return None, "collision", its, err
