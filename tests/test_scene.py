@@ -738,6 +738,7 @@ def test_read_options_defaults_and_values():
     ({"-ves_correct": "area"}, "-ves_correct"), ({"-ves_coupling": 3}, "-ves_coupling"),
     ({"-ves_max_rejects": 0}, "-ves_max_rejects"), ({"-ts_max_steps": -1}, "-ts_max_steps"),
     ({"-ves_near_factor": "inf"}, "-ves_near_factor"), ({"-ves_checkpoint_every": -1}, "-ves_checkpoint_every"),
+    ({"-ves_reparam_attenuation": "n3"}, "-ves_reparam_attenuation"),
 ])
 def test_bad_option_values(opts, name):
     with pytest.raises(OptionError) as exc:

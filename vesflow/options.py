@@ -139,6 +139,9 @@ REGISTRY: tuple[Option, ...] = (
        "corrections", gt=0),
     _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step", "corrections",
        ge=1, le=10000),
+    _O("-ves_reparam_attenuation", str, "n2", "weights a_n of the mesh-quality energy E = sum a_n^2 |Y_nm|^2 "
+       "(paper Fig. 4): n2 = n^2, n, n16 = n^16 (scaled), step = H(n - 2p/3)", "corrections",
+       choices=("n2", "n", "n16", "step")),
     # -- output ----------------------------------------------------------------------------------
     _O("-ves_checkpoint_every", float, None, "simulated time between restart checkpoints", "output",
        gt=0, default_text="output.every"),

@@ -34,15 +34,25 @@ from . import sph
 from .layerpot.near import Projection
 
 
+ATTENUATIONS = ("n2", "n", "n16", "step")
+
+
 def attenuation_weights(p, attenuation="n2"):
-    """a_n, n = 0..p: "n2" (n^2, the paper's choice), "n" (n), or an explicit array."""
+    """a_n, n = 0..p, the schemes of the paper's Fig. 4: "n2" (n^2, its choice), "n" (n), "n16"
+    (n^16, scaled by p^-14 so that a_p = p^2 as for "n2"), "step" (H(n - 2p/3): only the top
+    third of the degrees, the scheme of the earlier papers), or an explicit array."""
     n = np.arange(p + 1, dtype=float)
     if isinstance(attenuation, str):
         if attenuation == "n2":
             return n ** 2
         if attenuation == "n":
             return n
-        raise ValueError(f"attenuation = {attenuation!r}: must be 'n2', 'n' or an array of length p+1")
+        if attenuation == "n16":
+            return n ** 2 * (n / p) ** 14
+        if attenuation == "step":
+            return np.where(n >= 2.0 * p / 3.0, 1.0, 0.0)
+        raise ValueError(f"attenuation = {attenuation!r}: must be one of {', '.join(ATTENUATIONS)} "
+                         "or an array of length p+1")
     a = np.asarray(attenuation, dtype=float)
     if a.shape != (p + 1,):
         raise ValueError(f"attenuation array must have length p+1 = {p + 1}, got shape {a.shape}")

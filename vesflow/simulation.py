@@ -255,6 +255,7 @@ class Run:
             with self.timers.stage("repar"):
                 coeffs, _, _, _ = reparameterize(coeffs, self.p, dtau_max=o["reparam_dtau_max"],
                                                  tol=o["reparam_tol"], max_its=o["reparam_max_its"],
+                                                 attenuation=o["reparam_attenuation"],
                                                  project_its=project_its)
         if o["correct"] == "area_volume":
             with self.timers.stage("other"):
