@@ -81,6 +81,7 @@ class Run:
         self.progress, self.monitor, self.log = progress, monitor, log
         self.counts = {"accepted": 0, "rejected": 0}
         self.reparam_skipped = 0          # accepted steps whose reparameterization would have made contact
+        self.reparam_iterated = 0         # accepted steps kept out of contact by the iterated projection
         self.rows = []
         if checkpoint is None:
             S = Surface(coeffs, self.p)
@@ -145,6 +146,7 @@ class Run:
             if self.opts["reparam"]:
                 st.coeffs = self._post_processed(raw, True, project_its=10)
                 touching = collision.contacts(st.surface, self.q_near) > 0
+                self.reparam_iterated += int(not touching)
                 if touching:
                     st.coeffs = self._post_processed(raw, False)
                     touching = collision.contacts(st.surface, self.q_near) > 0
