@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from vesflow import forces, shapes, sph
+from vesflow import shapes, sph
 from vesflow.layerpot.evaluator import LayerPotentials, Settings
 from vesflow.layerpot.singular import SelfOperators
 from vesflow.surface import Surface

@@ -4,7 +4,6 @@ the overlap test agrees with brute force, and command-line options override scen
 import copy
 import dataclasses
 import math
-import re
 from pathlib import Path
 
 import numpy as np
@@ -375,7 +374,6 @@ def test_perram_wertheim_agrees_with_sampling():
 
 
 def test_pw_derivatives_match_finite_differences():
-    rng = np.random.default_rng(0)
     RA, RB = S.euler_zyz((10, 50, 80)), S.euler_zyz((70, 20, 140))
     MA = RA @ np.diag([1.0, 0.5, 0.3]) ** 2 @ RA.T
     MB = RB @ np.diag([0.8, 0.7, 0.2]) ** 2 @ RB.T
