@@ -13,7 +13,8 @@ from scipy.spatial import cKDTree
 
 from vesflow import collision, shapes, sph
 from vesflow.layerpot.near import Projection
-from vesflow.reparam import project_onto, reparameterize, spectral_energy
+from vesflow.options import REGISTRY
+from vesflow.reparam import ATTENUATIONS, project_onto, reparameterize, spectral_energy
 from vesflow.surface import Surface
 
 from . import harness
@@ -214,8 +215,10 @@ def test_attenuation_schemes_as_in_the_paper_fig4():
     p, q = 12, 48
     _, cb = distorted_prolate(p, 0.1)
     e2 = lambda c: float(spectral_energy(c[None], p)[0])
+    option, = (o for o in REGISTRY if o.name == "-ves_reparam_attenuation")
+    assert option.choices == ATTENUATIONS                # the option offers exactly the schemes reparam has
     out = {}
-    for a in ("n2", "n", "n16", "step"):
+    for a in ATTENUATIONS:
         cn, its, e0, e1 = reparameterize(cb, p, attenuation=a, max_its=200)
         out[a] = (e0, e1, e2(cn), hausdorff(cn, cb, p, q))
         report(f"attenuation {a}", its=its, E_own=(float(e0), float(e1)), E_n2_after=out[a][2], change=out[a][3])
