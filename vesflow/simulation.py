@@ -83,6 +83,7 @@ class Run:
         self.reparam_skipped = 0          # accepted steps whose reparameterization would have made contact
         self.reparam_iterated = 0         # accepted steps kept out of contact by the iterated projection
         self.rows = []
+        self.iterations = 0               # GMRES iterations of every solve of this process
         if checkpoint is None:
             S = Surface(coeffs, self.p)
             self.area0, self.volume0 = S.area(), S.volume()
@@ -141,20 +142,24 @@ class Run:
         raw = st.coeffs.copy()
         st.coeffs = self._post_processed(raw, self.opts["reparam"])
         check = self.opts["collision"] and st.surface.n_vesicles > 1
-        if check and collision.contacts(st.surface, self.q_near) > 0:
+        if check and self._touching():
             touching = True
             if self.opts["reparam"]:
                 st.coeffs = self._post_processed(raw, True, project_its=10)
-                touching = collision.contacts(st.surface, self.q_near) > 0
+                touching = self._touching()
                 self.reparam_iterated += int(not touching)
                 if touching:
                     st.coeffs = self._post_processed(raw, False)
-                    touching = collision.contacts(st.surface, self.q_near) > 0
+                    touching = self._touching()
                     self.reparam_skipped += int(not touching)
             if touching:
                 st.coeffs, st.time, st.last = saved
                 return None, "collision", its, err
         return sol, "accepted", its, err
+
+    def _touching(self):
+        with self.timers.stage("collision"):
+            return collision.contacts(self.stepper.surface, self.q_near) > 0
 
     def _next_dt(self, dt, err):
         o = self.opts
@@ -184,6 +189,7 @@ class Run:
             sol, reason, its, err = self._try(dt)
             accepted = sol is not None
             self.rows.append((self.t, dt, int(accepted), its, err, reason) + q_used)
+            self.iterations += its
             if self.monitor:
                 self.log(f"step {self.counts['accepted'] + self.counts['rejected']:5d} t={self.t:.6g} dt={dt:.3e} its={its} err={err:.2e} q={q_used[0]}/{q_used[1]} {reason}")
             if accepted:
@@ -240,7 +246,7 @@ class Run:
         lp = self.stepper.lp_last
         if lp is None:
             return
-        with self.timers.stage("other"):
+        with self.timers.stage("quad_adapt"):
             e = lp.error_estimate()
         tol, lo, hi = self.opts["quad_tol"], self.p, self.opts["q_max"]
         s = self.stepper.lp_settings
@@ -254,19 +260,23 @@ class Run:
         correction after it leaves them at -ves_correct_tol)."""
         o = self.opts
         if reparam:
-            with self.timers.stage("repar"):
+            with self.timers.stage("reparam"):
                 coeffs, _, _, _ = reparameterize(coeffs, self.p, dtau_max=o["reparam_dtau_max"],
                                                  tol=o["reparam_tol"], max_its=o["reparam_max_its"],
                                                  attenuation=o["reparam_attenuation"],
                                                  project_its=project_its)
         if o["correct"] == "area_volume":
-            with self.timers.stage("other"):
+            with self.timers.stage("correction"):
                 coeffs, _, _ = correct_area_volume(coeffs, self.p, self.area0, self.volume0,
                                                    tol=o["correct_tol"], max_its=o["correct_max_its"])
         return coeffs
 
     # ------------------------------------------------------------------ output
     def _frame(self):
+        with self.timers.stage("output"):
+            self._write_frame()
+
+    def _write_frame(self):
         if self.writer is None:
             self.next_frame += self.every
             return

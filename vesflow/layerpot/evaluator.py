@@ -67,7 +67,8 @@ class LayerPotentials:
         if self.N > 1:
             with _timed(timers, "near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
-            self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps)
+            with _timed(timers, "far_setup"):
+                self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
