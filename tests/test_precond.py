@@ -81,3 +81,49 @@ def test_false_convergence_is_caught_by_the_true_residual():
     st._pc_context = Broken()
     with pytest.raises(ConvergenceError, match="true relative residual|did not converge"):
         st.solve(0.01)
+
+
+@pytest.mark.parametrize("lam", [1.0, 4.0])
+def test_self_block_from_force_matrices_equals_the_operator_applied_to_unit_vectors(lam):
+    """StepOperator.self_block (force maps as matrices, issue 16) is the operator's own block:
+    equal to applying membrane_force, the self layer potentials and the divergence to every
+    unit vector (self_block_by_columns), and its parts recombine at any dt."""
+    from vesflow.operator import block_at
+    c = np.stack([shapes.make_shape("prolate", P, reduced_volume=0.8, rotation=(20, 40, 60)),
+                  shapes.make_shape("oblate", P, reduced_volume=0.7, center=(2.5, 0, 0))])
+    st = Stepper(c, P, VesicleParams([0.1, 0.3], [lam, lam], [0.0, 0.0]))
+    lp, op = st._setup(Surface(c, P), 0.03)
+    for v in range(2):
+        ref = op.self_block_by_columns(v)
+        new = op.self_block(v)
+        assert np.abs(new - ref).max() < 1e-11 * np.abs(ref).max()
+        A0, SMb = op.self_block_parts(v)
+        op.dt = 0.2
+        assert np.allclose(block_at(A0, SMb, 0.2), op.self_block_by_columns(v), rtol=0, atol=1e-11 * np.abs(ref).max())
+        op.dt = 0.03
+
+
+def test_block_preconditioner_is_reused_until_the_iterations_grow():
+    """The parts are kept across solves (other geometry, other dt) while the iterations stay
+    within REFRESH_FACTOR x the first + REFRESH_SLACK; a failed or slow solve rebuilds them."""
+    from vesflow import precond
+    op, b = _pair_system()
+    ctx = BlockJacobi(lag=100)
+    _, its0, _, _ = _solve(op, b, ctx)
+    assert ctx.rebuilds == 1 and ctx.base_its is None       # _solve does not report: Stepper does
+    ctx.observe(its0)
+    ctx.observe(its0 + 1)
+    _solve(op, b, ctx)
+    assert ctx.rebuilds == 1 and len(ctx.factors) == 1
+    op.dt *= 1.2                                             # within DT_MATCH: same factors
+    _solve(op, b, ctx)
+    assert len(ctx.factors) == 1
+    op.dt *= 2.0                                             # a new dt: new factors, same parts
+    _solve(op, b, ctx)
+    assert ctx.rebuilds == 1 and len(ctx.factors) == 2
+    ctx.observe(int(precond.REFRESH_FACTOR * its0 + precond.REFRESH_SLACK) + 1)
+    _solve(op, b, ctx)
+    assert ctx.rebuilds == 2 and len(ctx.factors) == 1
+    ctx.observe(3, failed=True)
+    _solve(op, b, ctx)
+    assert ctx.rebuilds == 3

@@ -99,8 +99,64 @@ class StepOperator:
                            f"coupling {self.coupling}, double layer {'on' if self.lp.want_double else 'off'}\n")
 
     # ------------------------------------------------------------------ dense self blocks (preconditioner)
-    def self_block(self, v, chunk=256):
-        """The dense 4C x 4C block of vesicle v with itself (forces, self layer potentials, divergence)."""
+    def force_matrices(self, v):
+        """The per-vesicle linear maps of the step as dense matrices, from the step's geometry.
+
+        Returns (Mb (3C, 3C), Mt (3C, C), Div (C, 3C)): coefficients of the linearized bending
+        force B[u] (3.12, with vesicle v's kappa_b, without dt), of the tension force f_sigma
+        (2.6) and of div_gamma u, each formed on the q_force grid and filtered to
+        degree p, i.e. the same maps as membrane_force and divergence (to rounding).  Built
+        from the degree-p basis on the q_force grid (sph.basis_on_grid, cached per p and q):
+        the derivatives of u and sigma are exact there, and only the Laplacian of the linearized
+        mean curvature needs the degree-q transforms, batched over the 3C columns.
+        """
+        g, Tf, C = self.geo, self.Tf, self.C
+        Q = sph.basis_on_grid(self.p, self.q_force)                  # dict of (C, npts)
+        n = g.normal[v]                                              # (npts, 3)
+        Xt, Xp = g.Xup_t[v], g.Xup_p[v]
+        # Laplace-Beltrami of each basis function (componentwise Laplace of u), (C, npts)
+        Lb = (g.gtt[v] * Q["tt"] + 2.0 * g.gtp[v] * Q["tp"] + g.gpp[v] * Q["pp"]
+              - g.gamma_t[v] * Q["t"] - g.gamma_p[v] * Q["p"])
+        # linearized mean curvature h = n . Laplace(u) / 2 of the 3C unit densities, (3, C, npts)
+        h = 0.5 * n.T[:, None, :] * Lb[None]
+        lap_h = _laplace_one(g, v, h.reshape(3 * C, -1)).reshape(3, C, -1)
+        mag = -self.params.kappa[v] * (lap_h + 2.0 * h * (g.H[v] ** 2 - g.K[v]))
+        # force components: (3 [density comp], C, 3 [force comp], npts) -> coefficients
+        fb = mag[:, :, None, :] * n.T[None, None]
+        Mb = Tf.analysis(fb).reshape(3 * C, 3 * C).T                 # rows: force (comp, k)
+        ft = ((2.0 * g.H[v] * Q[""])[:, None, :] * n.T[None]
+              + Q["t"][:, None, :] * Xt.T[None] + Q["p"][:, None, :] * Xp.T[None])   # (C, 3, npts)
+        Mt = Tf.analysis(ft).reshape(C, 3 * C).T
+        dv = Q["t"][None] * Xt.T[:, None, :] + Q["p"][None] * Xp.T[:, None, :]      # (3, C, npts)
+        Div = Tf.analysis(dv).reshape(3 * C, C).T
+        return Mb, Mt, Div
+
+    def self_block_parts(self, v):
+        """(A0, SMb) with self_block(v) = A0 - dt [SMb 0; 0 0]: the dt-independent part and the
+        single layer of the linearized bending force, so that a block for another dt costs a
+        sum (the preconditioner keeps both across the solves of a step and of later steps)."""
+        C = self.C
+        Mb, Mt, Div = self.force_matrices(v)
+        S = self.lp.self_ops.single[v]
+        A0 = np.zeros((self.block, self.block))
+        A0[:3 * C, 3 * C:] = -(S @ Mt)
+        if self.lp.want_double:
+            A0[:3 * C, :3 * C] = (1.0 - self.params.lam[v]) * self.lp.self_ops.double[v]
+        A0[np.arange(3 * C), np.arange(3 * C)] += self.params.alpha[v]
+        A0[3 * C:, :3 * C] = Div
+        return A0, S @ Mb
+
+    def self_block(self, v):
+        """The dense 4C x 4C block of vesicle v with itself (forces, self layer potentials, divergence):
+
+            [ alpha I - S (dt Mb) + (1 - lambda) D    - S Mt ]
+            [ Div                                      0     ]
+        """
+        A0, SMb = self.self_block_parts(v)
+        return block_at(A0, SMb, self.dt)
+
+    def self_block_by_columns(self, v, chunk=256):
+        """self_block by applying the operator pieces to unit vectors (the reference it is tested against)."""
         from .surface import Surface
         sub = Surface(self.surface.coeffs[v:v + 1], self.p)
         geo = sub.geometry(self.q_force)
@@ -123,3 +179,18 @@ class StepOperator:
             r2 = self.Tf.analysis(geo.div(self.grid_vec(u)))
             A[:, cols] = np.concatenate([r1, r2], axis=1).T
         return A
+
+
+def block_at(A0, SMb, dt):
+    """A0 - dt [SMb 0; 0 0] (a new array)."""
+    A = A0.copy()
+    n = SMb.shape[0]
+    A[:n, :n] -= dt * SMb
+    return A
+
+
+def _laplace_one(geo, v, f):
+    """Laplace-Beltrami on vesicle v of the grid's Geometry for many fields f (B, npts) of that grid."""
+    d = geo.derivatives(f)
+    return (geo.gtt[v] * d["tt"] + 2.0 * geo.gtp[v] * d["tp"] + geo.gpp[v] * d["pp"]
+            - geo.gamma_t[v] * d["t"] - geo.gamma_p[v] * d["p"])

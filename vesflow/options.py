@@ -105,8 +105,11 @@ REGISTRY: tuple[Option, ...] = (
        choices=("auto", "direct", "fmm", "ewald")),
     _O("-ves_far_tol", float, 1e-8, "requested relative accuracy of the fmm / ewald far-field sum",
        "quadrature", gt=0, lt=1),
-    _O("-ves_pc_lag", int, 5, "reuse the block preconditioner's LU factors for this many solves with the "
-       "same dt (1 = refactor every solve)", "solver", ge=1, le=1000),
+    _O("-ves_pc_lag", int, 50, "rebuild the block preconditioner from the current shapes after at most this "
+       "many solves (sooner when the GMRES iterations grow by half, docs/dynamics.md; 1 = every step)",
+       "solver", ge=1, le=100000),
+    _O("-ves_blas_threads", int, 1, "BLAS threads (numpy's OpenBLAS); the OpenMP kernels use OMP_NUM_THREADS "
+       "(vesflow.threads, docs/benchmarks.md)", "solver", ge=1, le=1024),
     _O("-ves_coupling", str, "implicit", "inter-vesicle interactions in the solve (implicit) or "
        "lagged to the right-hand side (explicit: cheaper, less stable)", "solver",
        choices=("implicit", "explicit")),

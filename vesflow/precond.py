@@ -3,45 +3,121 @@
     -pc_type python -pc_python_type vesflow.precond.BlockJacobi    dense LU of each vesicle's self block
     -pc_type python -pc_python_type vesflow.precond.SphereSpectral the block of a sphere of the same size
 
-Both find the StepOperator through the operator matrix (`pc.getOperators()[0].getPythonContext()`),
-factor once per step in setUp, and apply per vesicle.
+Both find the StepOperator through the operator matrix (`pc.getOperators()[0].getPythonContext()`)
+and apply one dense LU per vesicle.  Each block is A(dt) = A0 - dt [S Mb 0; 0 0]
+(`StepOperator.self_block_parts`): the parts are built once and kept, and a block for another
+dt costs a sum and an LU.
+
+Reuse, driven by the GMRES iterations (Stepper.solve reports each solve's iterations and
+seconds through `observe`): the parts are rebuilt from the current geometry once the
+iterations the aging blocks cost beyond the first solve after the last rebuild, summed over
+the solves since, have cost as much time as the rebuild took (the ski-rental rule: never
+more than twice the best fixed schedule), at once when a solve needs more than
+`REFRESH_FACTOR` x the first + `REFRESH_SLACK` iterations or fails, after -ves_pc_lag solves
+at most, and when the number of vesicles or p changed.  The LU factors of a block are reused
+for any dt within a factor `DT_MATCH` of the dt they were built for (the two half steps of
+step doubling, the steps after).
 """
 from __future__ import annotations
+
+import contextlib
+import time
 
 import numpy as np
 from scipy.linalg import lu_factor, lu_solve
 
+from .operator import block_at
+from .threads import map_vesicles
+
+REFRESH_FACTOR, REFRESH_SLACK = 3.0, 5
+DT_MATCH = 1.25
+MAX_DT_FACTORS = 3
+
 
 class _PerVesicle:
-    """Shared machinery: one dense LU per vesicle, factored in setUp.
-
-    The factors may be reused for `lag` solves (option -ves_pc_lag, default 5; 1 = refactor every
-    solve) while dt and the number of vesicles are unchanged: a preconditioner only has to be
-    close to the operator, and the geometry changes little between steps.
-    """
+    """Shared machinery: block parts per vesicle, LU factors per dt, reuse by iterations."""
 
     def __init__(self, lag=None):
         self.lag = lag
-        self.age = None
-        self.key = None
+        self.reset()
 
+    def reset(self):
+        """Forget every part and factor (rebuilt at the next setUp)."""
+        self.parts = None          # per vesicle (A0, SMb)
+        self.parts_key = None      # (N, p) they were built for
+        self.parts_lp = None       # the LayerPotentials (the geometry) they were built from
+        self.factors = []          # [(dt, [LU per vesicle])], newest last
+        self.base_its = None       # iterations of the first solve after the last rebuild
+        self.uses = 0              # solves since the last rebuild
+        self.stale = False
+        self.rebuilds = 0
+        self.build_seconds = 0.0   # wall time of the last rebuild (parts and first factors)
+        self.excess_seconds = 0.0  # time of the iterations beyond base_its since then
+
+    # ------------------------------------------------------------------ reuse policy
+    def observe(self, its, failed=False, seconds=None):
+        """The iterations (and wall seconds) of the solve just done with these blocks."""
+        if failed:
+            self.stale = True
+            return
+        if self.base_its is None:
+            self.base_its = its
+            return
+        if its > REFRESH_FACTOR * self.base_its + REFRESH_SLACK:
+            self.stale = True
+        elif seconds is not None and its > 0:
+            self.excess_seconds += (its - self.base_its) * seconds / its
+            self.stale = self.excess_seconds >= self.build_seconds
+
+    def _max_uses(self):
+        if self.lag is None:
+            from petsc4py import PETSc
+            self.lag = max(1, PETSc.Options().getInt("ves_pc_lag", 50))
+        return self.lag
+
+    # ------------------------------------------------------------------ PC python interface
     def setUp(self, pc):
         A, _ = pc.getOperators()
         op = A.getPythonContext()
         self.op = op
-        if self.lag is None:
-            from petsc4py import PETSc
-            self.lag = max(1, PETSc.Options().getInt("ves_pc_lag", 5))
-        key = (op.N, op.p, int(np.round(np.log2(op.dt))) if op.dt > 0 else None)   # dt within a factor ~1.4
-        cache = self.__dict__.setdefault("cache", {})
-        if key in cache and cache[key][1] < self.lag:
-            self.lu, age = cache[key]
-            cache[key] = (self.lu, age + 1)
-            return
-        self.lu = [lu_factor(B, check_finite=False) for B in self.blocks(op)]
-        if len(cache) >= 3:
-            cache.clear()
-        cache[key] = (self.lu, 1)
+        key = (op.N, op.p)
+        fresh_geometry = self.parts_lp is not op.lp
+        if (self.parts is None or key != self.parts_key or self.stale
+                or (fresh_geometry and self.uses >= self._max_uses())):
+            t0 = time.perf_counter()
+            timers = getattr(op.lp, "timers", None) or _NoTimers()
+            with timers.stage("pc_blocks"):
+                self.parts = self.block_parts(op)
+            self.parts_key, self.parts_lp = key, op.lp
+            self.factors, self.base_its, self.uses, self.stale = [], None, 0, False
+            self.excess_seconds = 0.0
+            self.rebuilds += 1
+            self.lu = self._factors_for(op)
+            self.build_seconds = time.perf_counter() - t0
+        else:
+            self.lu = self._factors_for(op)
+        self.uses += 1
+
+    def _factors_for(self, op):
+        dt = op.dt
+        for dt_f, lu in self.factors:
+            if (dt_f == dt) or (dt_f > 0 and dt > 0 and max(dt / dt_f, dt_f / dt) <= DT_MATCH):
+                return lu
+        timers = getattr(op.lp, "timers", None) or _NoTimers()
+        with timers.stage("pc_lu"):
+            lu = map_vesicles(lambda k: lu_factor(self.finish_block(block_at(*self.parts[k], dt), op),
+                                                  check_finite=False), range(len(self.parts)))
+        self.factors.append((dt, lu))
+        del self.factors[:-MAX_DT_FACTORS]
+        return lu
+
+    def blocks(self, op):
+        """The blocks as factored, at the operator's dt (for inspection and tests)."""
+        return [self.finish_block(block_at(A0, SMb, op.dt), op) for A0, SMb in self.block_parts(op)]
+
+    def finish_block(self, A, op):
+        """Hook applied to each assembled block before its factorization."""
+        return A
 
     def apply(self, pc, x, y):
         xa = x.getArray(readonly=True).reshape(self.op.N, self.op.block)
@@ -51,14 +127,15 @@ class _PerVesicle:
         y.setArray(out.ravel())
 
     def view(self, pc, viewer):
-        viewer.printfASCII(f"vesflow {type(self).__name__}: {len(getattr(self, 'lu', []))} dense LU blocks\n")
+        viewer.printfASCII(f"vesflow {type(self).__name__}: {len(getattr(self, 'lu', []))} dense LU blocks, "
+                           f"rebuilt {self.rebuilds} times\n")
 
 
 class BlockJacobi(_PerVesicle):
     """Inverse of the block diagonal: each vesicle with itself (the paper's better choice)."""
 
-    def blocks(self, op):
-        return [op.self_block(v) for v in range(op.N)]
+    def block_parts(self, op):
+        return map_vesicles(op.self_block_parts, range(op.N))
 
 
 class SphereSpectral(_PerVesicle):
@@ -67,7 +144,8 @@ class SphereSpectral(_PerVesicle):
     On a sphere the operator is diagonal in the degree n (the spectrum the paper's analytic
     preconditioner uses); we assemble it once per distinct (radius, kappa, lambda) with the same
     machinery as BlockJacobi and reuse it, which is cheaper than per-vesicle blocks when many
-    vesicles share their properties.
+    vesicles share their properties.  Radii are matched to 4 significant digits (the area
+    correction holds them to ~1e-10, which must not make a new sphere every step).
 
     The sphere's block is singular: a constant tension exerts no force on a sphere (its
     column is zero) and the mean normal velocity enters only the n = 0 divergence row.  Left
@@ -77,25 +155,32 @@ class SphereSpectral(_PerVesicle):
     which maps the mean-divergence residual to the constant tension and makes it invertible.
     """
 
-    def blocks(self, op):
+    def __init__(self, lag=None):
+        super().__init__(lag)
+        self.spheres = {}
+
+    def observe(self, its, failed=False):
+        """The blocks depend on the radii only: nothing goes stale with the shapes."""
+
+    def block_parts(self, op):
         from .layerpot.singular import SelfOperators
         from .operator import StepOperator, VesicleParams
         from .shapes import make_shape
         from .surface import Surface
         radii = op.surface.effective_radius()
-        cache, out = {}, []
+        out = []
         for v in range(op.N):
-            key = (round(float(radii[v]), 12), float(op.params.kappa[v]), float(op.params.lam[v]))
-            if key not in cache:
+            key = (float(f"{radii[v]:.4g}"), float(op.params.kappa[v]), float(op.params.lam[v]), op.p)
+            if key not in self.spheres:
                 S = Surface(make_shape("sphere", op.p, radius=key[0])[None], op.p)
                 lp = _SelfOnly(SelfOperators(S.coeffs, op.p, op.lp.q_self, True, op.lp.want_double, op.params.mu),
                                op.lp.want_double, np.array([key[2]]))
                 prm = VesicleParams([key[1]], [key[2]], [0.0], op.params.mu)
-                B = StepOperator(S, prm, op.dt, lp, op.q_force).self_block(0)
-                i0 = 3 * op.C                                    # tension, n = 0
-                B[i0, i0] += np.abs(B[i0]).max()
-                cache[key] = B
-            out.append(cache[key])
+                A0, SMb = StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0)
+                i0 = 3 * op.C                                    # tension, n = 0 (a divergence row: no dt)
+                A0[i0, i0] += np.abs(A0[i0]).max()
+                self.spheres[key] = (A0, SMb)
+            out.append(self.spheres[key])
         return out
 
 
@@ -104,3 +189,9 @@ class _SelfOnly:
 
     def __init__(self, self_ops, want_double, lam):
         self.self_ops, self.want_double, self.lam = self_ops, want_double, lam
+        self.timers = None
+
+
+class _NoTimers:
+    def stage(self, name):
+        return contextlib.nullcontext()

@@ -16,6 +16,7 @@ flattened latitude-major.  All transforms are batched over leading axes.
 """
 from __future__ import annotations
 
+import math
 from functools import lru_cache
 
 import numpy as np
@@ -130,12 +131,14 @@ class Transform:
         self.ncoef = n_coeffs(p)
         x = np.cos(self.theta)
         self.lam, self.dlam, self.d2lam = legendre(p, x)
+        self._lam_T = np.ascontiguousarray(np.swapaxes(self.lam, 1, 2))
         self.sin_theta = np.sqrt(1.0 - x * x)
         # quadrature weight per grid point on the unit sphere (w_i pi / q)
         self.weights = np.repeat(self.glw * np.pi / q, self.nlon)
         # gather: padded (kind, m, n) <- flat
         ns, ms, ks = index_tables(p)
         self._pad_index = (ks, ms, ns)
+        self._pad_flat = (ks * (p + 1) + ms) * (p + 1) + ns
         m = np.arange(p + 1)
         ang = np.outer(m, self.phi)                        # (p+1, nlon)
         c = np.where(m == 0, 1.0, SQRT2)[:, None]
@@ -161,10 +164,10 @@ class Transform:
         k = coeffs.shape[-1]
         if k not in (self.ncoef, self.nfull):
             raise ValueError(f"expected {self.ncoef} or {self.nfull} coefficients for p = {self.p}, got {k}")
-        out = np.zeros(coeffs.shape[:-1] + (2, self.p + 1, self.p + 1))
-        ks, ms, ns = (a[:k] for a in self._pad_index)
-        out[..., ks, ms, ns] = coeffs
-        return out
+        M = self.p + 1
+        out = np.zeros(coeffs.shape[:-1] + (2 * M * M,))
+        out[..., self._pad_flat[:k]] = coeffs
+        return out.reshape(coeffs.shape[:-1] + (2, M, M))
 
     def unpad(self, padded, full=False):
         """Padded (..., 2, p+1, p+1) -> flat (..., C) or (..., (p+1)^2)."""
@@ -176,17 +179,17 @@ class Transform:
     def _legendre_step(self, padded, table):
         # padded (..., 2, M, N) ; table (M, I, N) -> (..., 2, M, I): one batched GEMM over m
         lead = padded.shape[:-2]
-        B = int(np.prod(lead, dtype=np.int64))
-        X = np.moveaxis(padded.reshape(B, self.p + 1, self.p + 1), 0, -1)       # (M, N, B)
+        B = math.prod(lead)
+        X = padded.reshape(B, self.p + 1, self.p + 1).transpose(1, 2, 0)           # (M, N, B)
         Y = np.matmul(table, X)                                                  # (M, I, B)
-        return np.moveaxis(Y, -1, 0).reshape(lead + (self.p + 1, table.shape[1]))
+        return Y.transpose(2, 0, 1).reshape(lead + (self.p + 1, table.shape[1]))
 
     def _fourier_step(self, F, cosm, sinm):
         # F (..., 2, M, I) -> (..., I, J): one GEMM with the stacked trig matrices
         lead = F.shape[:-3]
         M, I = F.shape[-2], F.shape[-1]
-        B = int(np.prod(lead, dtype=np.int64))
-        A = np.swapaxes(F.reshape(B, 2 * M, I), 1, 2).reshape(B * I, 2 * M)
+        B = math.prod(lead)
+        A = F.reshape(B, 2 * M, I).transpose(0, 2, 1).reshape(B * I, 2 * M)
         out = A @ np.concatenate([cosm, sinm], axis=0)
         return out.reshape(lead + (I, cosm.shape[1]))
 
@@ -205,6 +208,20 @@ class Transform:
             cosm, sinm = -m * m * self.cos_m, -m * m * self.sin_m
         g = self._fourier_step(F, cosm, sinm)
         return g.reshape(g.shape[:-2] + (self.npts,))
+
+    def synth_first(self, coeffs):
+        """Values and first derivatives (values, d/dtheta, d/dphi), each (..., npts): two
+        Legendre steps and one Fourier GEMM for the values and the phi derivative together."""
+        padded = self.pad(coeffs)
+        m = self._dphi
+        F0 = self._legendre_step(padded, self.lam)
+        F1 = self._legendre_step(padded, self.dlam)
+        both = self._fourier_step(F0, np.concatenate([self.cos_m, -m * self.sin_m], axis=1),
+                                  np.concatenate([self.sin_m, m * self.cos_m], axis=1))
+        g0, gp = both[..., :self.nlon], both[..., self.nlon:]
+        gt = self._fourier_step(F1, self.cos_m, self.sin_m)
+        shape = gt.shape[:-2] + (self.npts,)
+        return g0.reshape(shape), gt.reshape(shape), gp.reshape(shape)
 
     def synth_all(self, coeffs):
         """Values and first and second derivatives at once: dict with keys '', 't', 'p', 'tt', 'tp', 'pp'."""
@@ -237,17 +254,16 @@ class Transform:
     def _analysis_like(self, values, acos, asin, latw, full):
         """Fourier projection with (acos, asin), latitude weights, then the transposed Legendre step."""
         lead = values.shape[:-1]
-        B = int(np.prod(lead, dtype=np.int64))
+        B = math.prod(lead)
         g = values.reshape(B * self.nlat, self.nlon)
         F = g @ np.concatenate([acos, asin], axis=0).T                     # (B*I, 2M)
         M = self.p + 1
-        F = F.reshape(B, self.nlat, 2 * M) * (latw[None, :, None] if latw is not None else 1.0)
-        F = np.moveaxis(F.reshape(B, self.nlat, 2, M), 0, -1)               # (I, 2, M, B)
-        F = np.moveaxis(F, 2, 0)                                            # (M, I, 2, B)
-        Xm = F.reshape(M, self.nlat, 2 * B)
-        padded = np.matmul(np.swapaxes(self.lam, 1, 2), Xm)                 # (M, N, 2B)
-        padded = padded.reshape(M, M, 2, B)
-        padded = np.moveaxis(padded, (3, 2, 0, 1), (0, 1, 2, 3)).reshape(lead + (2, M, M))
+        F = F.reshape(B, self.nlat, 2 * M)
+        if latw is not None:
+            F = F * latw[None, :, None]
+        Xm = F.reshape(B, self.nlat, 2, M).transpose(3, 1, 2, 0).reshape(M, self.nlat, 2 * B)   # (M, I, 2B)
+        padded = np.matmul(self._lam_T, Xm)                                 # (M, N, 2B)
+        padded = padded.reshape(M, M, 2, B).transpose(3, 2, 0, 1).reshape(lead + (2, M, M))
         return self.unpad(padded, full=full)
 
     def synth_transpose(self, values, full=False):
@@ -264,6 +280,16 @@ class Transform:
 def transform(p, q=None):
     """Cached Transform(p, q)."""
     return Transform(p, p if q is None else q)
+
+
+@lru_cache(maxsize=16)
+def basis_on_grid(p, q):
+    """Values and derivatives of the C degree-p basis functions on the q-grid: dict of (C, npts)
+    (keys '', 't', 'p', 'tt', 'tp', 'pp', as Transform.synth_all), read-only."""
+    out = transform(p, q).synth_all(np.eye(n_coeffs(p)))
+    for a in out.values():
+        a.flags.writeable = False
+    return out
 
 
 def resample(coeffs, p_from, p_to):

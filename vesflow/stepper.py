@@ -10,6 +10,8 @@ block-Jacobi PC context unless the command line names another.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from . import forces, sph
@@ -58,12 +60,33 @@ class Stepper:
 
     @property
     def surface(self):
-        return Surface(self.coeffs, self.p)
+        """The Surface of the current coefficients; the same object (with its cached geometry)
+        while they do not change, so that the solves of one step share their set-up."""
+        cached = getattr(self, "_surface", None)
+        if cached is None or not np.array_equal(cached.coeffs, self.coeffs):
+            cached = self._surface = Surface(self.coeffs.copy(), self.p)
+        return cached
+
+    def reset_preconditioner(self):
+        """Forget the preconditioner's parts and factors (a checkpoint: restarts take the same steps)."""
+        ctx = getattr(self, "_pc_context", None)
+        if ctx is not None and hasattr(ctx, "reset"):
+            ctx.reset()
+        else:
+            self._pc_context = None
 
     # ------------------------------------------------------------------ pieces of one solve
     def _setup(self, surface, dt):
-        lp = LayerPotentials(surface, lam=self.params.lam, viscosity=self.params.mu,
-                             settings=self.lp_settings, timers=self.timers)
+        """Layer potentials of the surface (kept while the surface and the quadrature degrees do
+        not change: the step and half step of step doubling share them) and the step operator."""
+        key = (id(surface), self.lp_settings.q_self, self.lp_settings.q_far)
+        cached = getattr(self, "_lp_cache", None)
+        if cached is not None and cached[0] == key and cached[1].surface is surface:
+            lp = cached[1]
+        else:
+            lp = LayerPotentials(surface, lam=self.params.lam, viscosity=self.params.mu,
+                                 settings=self.lp_settings, timers=self.timers)
+            self._lp_cache = (key, lp)
         op = StepOperator(surface, self.params, dt, lp, self.q_force, self.coupling)
         return lp, op
 
@@ -77,7 +100,7 @@ class Stepper:
         return f
 
     def rhs(self, surface, lp, op):
-        self.timers.start("other")
+        self.timers.start("rhs")
         Tp = sph.transform(self.p)
         X = surface.points()
         if self.physics.flow is None:                     # no [flow]: nothing to evaluate
@@ -86,7 +109,7 @@ class Stepper:
             uinf = background_velocity(self.physics.flow, X, **self.physics.flow_args)
             b1 = Tp.analysis(np.moveaxis(uinf, -1, -2))
         f = op.coeffs_vec(self.explicit_traction(surface, op.geo))
-        self.timers.stop("other")
+        self.timers.stop("rhs")
         b1 = b1 + lp.apply(f, None)
         if self.coupling == "explicit" and self.last is not None and surface.n_vesicles > 1:
             # inter-vesicle terms of the previous solution moved to the right side
@@ -128,11 +151,17 @@ class Stepper:
         ksp.setFromOptions()
         with self.timers.stage("setup"):
             ksp.setUp()
+        t_solve = time.perf_counter()
         ksp.solve(b, x)
+        t_solve = time.perf_counter() - t_solve
+        self.timers.count("solve")
         reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+        observe = getattr(pc.getPythonContext() if pc.getType() == "python" else None, "observe", None)
         rtol = ksp.getTolerances()[0]
         ksp.destroy()
         if reason < 0:
+            if observe is not None:
+                observe(its, failed=True)
             A.destroy()
             raise ConvergenceError(f"GMRES did not converge: reason {_reason_name(reason)} after {its} iterations",
                                    reason=reason, iterations=its)
@@ -143,6 +172,8 @@ class Stepper:
         r.aypx(-1.0, b)
         relres = r.norm() / max(b.norm(), 1e-300)
         A.destroy()
+        if observe is not None:
+            observe(its, failed=not relres <= max(1e-6, 1e4 * rtol), seconds=t_solve)
         if not relres <= max(1e-6, 1e4 * rtol):
             raise ConvergenceError(f"GMRES reported {_reason_name(reason)} after {its} iterations but the true "
                                    f"relative residual is {relres:.2e} (a singular preconditioner?)",
