@@ -260,3 +260,24 @@ def test_backend_choice():
         far.choose_backend(10, 10, "treecode")
     with pytest.raises(SceneError):
         far.FarField(np.zeros((1, 3)), [0], np.zeros((1, 3)), [0], backend="direct", eps=0.0)
+
+
+@pytest.mark.parametrize("p", [3, 8, 16])
+def test_series_at_points_matches_the_numpy_evaluation(p):
+    """_kernels.series.eval_points (the projection's evaluator) equals near.eval_series (the
+    numpy einsum over sph.legendre) for values and both derivatives, at random points of
+    several vesicles; and its values equal sph.evaluate."""
+    from vesflow import shapes, sph
+    from vesflow.layerpot.near import eval_points, eval_series
+    rng = np.random.default_rng(p)
+    c = np.stack([shapes.make_shape("oblate", p, reduced_volume=0.7, rotation=(10, 20, 30)),
+                  shapes.make_shape("prolate", p, reduced_volume=0.8, center=(1, 2, 3))])
+    n = 257
+    v = rng.integers(0, 2, n)
+    th, ph = rng.uniform(1e-3, np.pi - 1e-3, n), rng.uniform(-1, 7, n)
+    got = eval_points(np.ascontiguousarray(sph.transform(p).pad(c)), v, th, ph)
+    ref = eval_series(c[v], p, th, ph)
+    for a, b in zip(got, ref):
+        assert np.abs(a - b).max() < 1e-12 * np.abs(b).max()
+    direct = np.stack([sph.evaluate(c[k], p, th, ph).T for k in range(2)])[v, np.arange(n)]
+    assert np.abs(got[0] - direct).max() < 1e-12

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sph
+from .._kernels import series
 
 L_POINTS = 8
 
@@ -44,6 +45,17 @@ def eval_series(coeffs, p, theta, phi, derivs=True):
     return val, dt, dp
 
 
+def eval_points(padded, vesicle, theta, phi):
+    """Values and theta / phi derivatives (P, k) at (theta, phi) (P,) of the series of vesicle
+    `vesicle` (P,) (padded coefficients (V, k, 2, M, N), sph.Transform.pad): the compiled
+    kernel series.eval_points (same recurrences as eval_series, O(p^2) per point)."""
+    P, k = len(theta), padded.shape[1]
+    val, dt, dp = np.empty((P, k)), np.empty((P, k)), np.empty((P, k))
+    series.eval_points(padded, np.ascontiguousarray(vesicle, dtype=np.int64), np.ascontiguousarray(theta, dtype=float),
+                       np.ascontiguousarray(phi, dtype=float), val, dt, dp)
+    return val, dt, dp
+
+
 class Projection:
     """Closest points on surfaces: for targets x (P, 3) and source vesicles v (P,).
 
@@ -53,9 +65,10 @@ class Projection:
 
     def __init__(self, coeffs, p, targets, vesicle, start_theta, start_phi, tol=1e-10, max_iter=30):
         x = np.asarray(targets, dtype=float)
-        cv = np.asarray(coeffs)[vesicle]                              # (P, 3, C)
+        padded = np.ascontiguousarray(sph.transform(p).pad(np.asarray(coeffs, dtype=float)))   # (V, 3, 2, M, N)
+        vesicle = np.ascontiguousarray(vesicle, dtype=np.int64)
         th, ph = np.array(start_theta, dtype=float), np.array(start_phi, dtype=float)
-        Y, Yt, Yp = eval_series(cv, p, th, ph)
+        Y, Yt, Yp = eval_points(padded, vesicle, th, ph)
         res = np.einsum("pk,pk->p", Y - x, Y - x)
         conv = np.zeros(len(x), dtype=bool)
         for _ in range(max_iter):
@@ -86,7 +99,7 @@ class Projection:
                     break
                 k = np.nonzero(pending)[0]
                 tt, pp = _wrap(th[idx[k]] + step[k] * dth[k], ph[idx[k]] + step[k] * dph[k])
-                y, yt, yp = eval_series(cv[idx[k]], p, tt, pp)
+                y, yt, yp = eval_points(padded, vesicle[idx[k]], tt, pp)
                 rr = np.einsum("pk,pk->p", y - x[idx[k]], y - x[idx[k]])
                 ok = (rr <= best[k] * (1.0 + 1e-14)) | local[k]
                 kk = k[ok]
