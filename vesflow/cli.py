@@ -162,6 +162,8 @@ def cmd_run(rest):
     getter = options.argv_getter(petsc_args)
     sc = options.apply_overrides(sc, getter)
     opts = options.read_options(getter, sc)
+    from . import threads
+    threads.configure(opts["blas_threads"])   # before the compiled kernels are loaded
     if restart is not None and (sc.p != int(prev["p"]) or sc.n_vesicles != int(prev["n_vesicles"])):
         raise OptionError(f"-ves_p = {sc.p}: a restart keeps the p = {int(prev['p'])} of {restart}")
     import petsc4py

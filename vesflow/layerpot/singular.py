@@ -25,6 +25,11 @@ from .. import sph
 
 INV8PI = 1.0 / (8.0 * np.pi)
 DL_COEF = -3.0 / (4.0 * np.pi)
+# the 6 components a <= b of a symmetric 3x3 kernel, which of them are diagonal, and the
+# index of component (a, b) among them
+SYM = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+DIAG = [0, 3, 5]
+FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
 
 
 @lru_cache(maxsize=16)
@@ -71,55 +76,60 @@ class SelfOperators:
         nves = coeffs.shape[0]
         self.single = np.zeros((nves, 3 * C, 3 * C)) if want_single else None
         self.double = np.zeros((nves, 3 * C, 3 * C)) if want_double else None
-        for v in range(nves):
-            S, D = self._assemble(coeffs[v], want_single, want_double)
+        from ..threads import map_vesicles
+        ops = map_vesicles(lambda v: self._assemble(coeffs[v], want_single, want_double), range(nves))
+        for v, (S, D) in enumerate(ops):
             if want_single:
                 self.single[v] = S / viscosity
             if want_double:
                 self.double[v] = D
 
     def _assemble(self, X, want_single, want_double):
+        """Both kernels are symmetric in (a, b): only the 6 components a <= b (SYM) are
+        integrated, rotated back and projected; the rows of all targets are collected and
+        projected on the p-grid with one GEMM at the end."""
         p, q = self.p, self.q
         Tp, Tq = sph.transform(p), sph.transform(p, q)
-        C = sph.n_coeffs(p)
+        C, K = sph.n_coeffs(p), sph.n_full(p)
         Pm = analysis_matrix(p)                                        # (C, M)
         lam_w = graham_sloan_weights(q) / np.repeat(Tq.sin_theta, Tq.nlon)  # Lambda / sin(theta)
-        Xt_grid = np.moveaxis(Tp.synth(X), 0, -1).reshape(Tp.nlat, Tp.nlon, 3)
-        S_acc = np.zeros((3, C, 3, C)) if want_single else None
-        D_acc = np.zeros((3, C, 3, C)) if want_double else None
+        Xt_grid = Tp.synth(X).T.reshape(Tp.nlat, Tp.nlon, 3)
+        kinds = [w for w, on in (("S", want_single), ("D", want_double)) if on]
+        rows = {w: np.empty((Tp.nlat, Tp.nlon, 6, K)) for w in kinds}   # R_t^T Q^T (Lambda W K) per target
         phis = Tp.phi
+        ia, ib = (tuple(int(a) for a in x) for x in SYM)
         for i0, theta0 in enumerate(Tp.theta):
-            # rotated surface, one per target on this latitude: (J, 3, K)
+            # rotated surface, one per target on this latitude: (J, 3, Mq) with derivatives
             Xr = sph.rotate_y(sph.rotate_z(np.broadcast_to(X, (len(phis), 3, C)), p, phis[:, None]), p, theta0)
-            d = {key: np.moveaxis(Tq.synth(Xr, key), -2, -1) for key in (None, "t", "p")}  # (J, Mq, 3)
-            cr = np.cross(d["t"], d["p"])
-            W = np.linalg.norm(cr, axis=-1)                            # (J, Mq)
-            wgt = W * lam_w                                            # Lambda W / sin(theta)
-            r = Xt_grid[i0][:, None, :] - d[None]                      # (J, Mq, 3)
-            rr = np.einsum("jyk,jyk->jy", r, r)
-            rinv = 1.0 / np.sqrt(rr)
-            rows = []
-            if want_single:
-                ker = INV8PI * (np.eye(3)[None, :, :, None] * (rinv * wgt)[:, None, None, :]
-                                + np.einsum("jya,jyb->jaby", r, r) * (rinv ** 3 * wgt)[:, None, None, :])
-                rows.append(ker)
-            if want_double:
-                rn = np.einsum("jyk,jyk->jy", r, cr)                    # (r . n) W
-                ker = DL_COEF * np.einsum("jya,jyb->jaby", r, r) * (rn * rinv ** 5 * lam_w)[:, None, None, :]
-                rows.append(ker)
-            for which, ker in zip([w for w in ("S", "D") if {"S": want_single, "D": want_double}[w]], rows):
-                R = Tq.synth_transpose(ker, full=True)                # (J, 3, 3, K)
-                R = _rotate_back(R, p, theta0, phis)[..., :C]          # density in the reduced space
-                # project the target values on the p-grid: acc[a, k', b, k] += P[k', t] R[t, a, b, k]
-                Pcols = Pm[:, i0 * Tp.nlon:(i0 + 1) * Tp.nlon]          # (C, J)
-                contrib = np.einsum("cj,jabk->acbk", Pcols, R, optimize=True)
+            x, xt, xp = Tq.synth_first(Xr)
+            cr = np.stack([xt[:, 1] * xp[:, 2] - xt[:, 2] * xp[:, 1],
+                           xt[:, 2] * xp[:, 0] - xt[:, 0] * xp[:, 2],
+                           xt[:, 0] * xp[:, 1] - xt[:, 1] * xp[:, 0]], axis=1)      # n W, (J, 3, Mq)
+            r = Xt_grid[i0][:, :, None] - x                                          # (J, 3, Mq)
+            rinv = 1.0 / np.sqrt(np.einsum("jkm,jkm->jm", r, r))
+            rr = np.empty((len(phis), 6, r.shape[-1]))                              # r_a r_b, a <= b
+            for c in range(6):
+                np.multiply(r[:, ia[c]], r[:, ib[c]], out=rr[:, c])
+            for which in kinds:
                 if which == "S":
-                    S_acc += contrib
+                    wgt = np.sqrt(np.einsum("jkm,jkm->jm", cr, cr)) * lam_w           # Lambda W / sin(theta)
+                    ker = rr * (INV8PI * rinv ** 3 * wgt)[:, None]
+                    ker[:, DIAG] += (INV8PI * rinv * wgt)[:, None]
                 else:
-                    D_acc += contrib
-        S = S_acc.reshape(3 * C, 3 * C) if want_single else None
-        D = D_acc.reshape(3 * C, 3 * C) if want_double else None
-        return S, D
+                    rn = np.einsum("jkm,jkm->jm", r, cr)                            # (r . n) W
+                    ker = rr * (DL_COEF * rn * rinv ** 5 * lam_w)[:, None]
+                R = Tq.synth_transpose(ker, full=True)                              # (J, 6, K)
+                rows[which][i0] = _rotate_back(R, p, theta0, phis)
+        out = []
+        for which in ("S", "D"):
+            if which not in rows:
+                out.append(None)
+                continue
+            R = rows[which].reshape(Tp.npts, 6 * K)
+            proj = (Pm @ R).reshape(C, 6, K)[:, :, :C]                 # (k', ab, k): density in the reduced space
+            full = proj[:, FULL]                                         # (k', 3, 3, k)
+            out.append(np.ascontiguousarray(full.transpose(1, 0, 2, 3)).reshape(3 * C, 3 * C))
+        return out[0], out[1]
 
     # ------------------------------------------------------------------ apply
     @staticmethod

@@ -1,0 +1,63 @@
+"""One thread policy for the OpenMP kernels and BLAS (issue 16; docs/benchmarks.md, "Threads").
+
+- OpenMP (the compiled kernels: far-field sums, near pairs, series at points): the number of
+  threads is OMP_NUM_THREADS (the HPC convention; the Makefile exports 2), and idle threads
+  sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE unless the user set it): a spinning
+  thread takes the core that another process, or our own main thread, needs.
+- Per-vesicle set-up (self operators, preconditioner blocks) runs on the same number of
+  Python threads, one vesicle each (`map_vesicles`): numpy releases the GIL inside its
+  array operations and BLAS calls, which is where that work is.
+- BLAS (numpy's OpenBLAS: the batched per-vesicle GEMV/GEMM of the self operators, the
+  transforms, the block assembly and LU): one thread by default (-ves_blas_threads).  Its
+  matrices are small and per vesicle: threads there cost more in start-up and busy-waiting
+  than they save, and oversubscribe the cores the OpenMP kernels use next.
+
+`configure` must run before the kernels are imported (libgomp reads its environment when
+it is loaded); vesflow.cli calls it first.  Library users who import vesflow directly get
+the OpenMP and BLAS defaults of their environment until they call it.
+"""
+from __future__ import annotations
+
+import os
+
+_state = {"limiter": None, "blas": None, "pool": None}
+
+
+def configure(blas_threads=1):
+    """Set the policy above for this process; returns {'openmp': n, 'blas': n}."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from threadpoolctl import threadpool_limits
+    _state["limiter"] = threadpool_limits(limits=int(blas_threads), user_api="blas")
+    _state["blas"] = int(blas_threads)
+    return {"openmp": openmp_threads(), "blas": int(blas_threads)}
+
+
+def openmp_threads():
+    """Threads the OpenMP kernels use (OMP_NUM_THREADS, else the number of cores)."""
+    try:
+        return max(1, int(os.environ.get("OMP_NUM_THREADS", "")))
+    except ValueError:
+        return os.cpu_count() or 1
+
+
+def describe():
+    """One line for the run's log."""
+    blas = _state["blas"]
+    return (f"threads: OpenMP {openmp_threads()} ({os.environ.get('OMP_WAIT_POLICY', 'default')} wait), "
+            f"BLAS {blas if blas is not None else 'environment default'}")
+
+
+def map_vesicles(fn, items):
+    """[fn(i) for i in items], on openmp_threads() Python threads when there are several
+    (one item per task, results in order); in this thread otherwise."""
+    items = list(items)
+    n = min(openmp_threads(), len(items))
+    if n <= 1:
+        return [fn(i) for i in items]
+    pool = _state["pool"]
+    if pool is None or pool._max_workers != n:
+        from concurrent.futures import ThreadPoolExecutor
+        if pool is not None:
+            pool.shutdown(wait=False)
+        pool = _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="vesflow")
+    return list(pool.map(fn, items))
