@@ -96,7 +96,8 @@ def test_sigkill_at_a_random_moment_then_restart_gives_the_uninterrupted_run(ref
     rng = random.Random(6)
     n_steps = int(ref.steps["accepted"].sum())
     kill_after = rng.randrange(0, n_steps - 1)        # kill during step kill_after + 1 ...
-    delay = rng.uniform(0.0, 0.3)                      # ... at a random moment of it
+    step_seconds = ref.timings["total"] / len(ref.steps["dt"])   # the reference's time per attempted step
+    delay = rng.uniform(0.0, 1.0) * step_seconds       # ... at a random moment of it
     out = tmp_path / "killed.h5"
     proc = subprocess.Popen(VESFLOW + ["run", str(scene), "-o", str(out)] + RUN_OPTS, cwd=ROOT, env=ENV,
                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
