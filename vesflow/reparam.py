@@ -148,10 +148,10 @@ def reparameterize(coeffs, p, dtau_max=1e-3, tol=1e-5, max_its=20, attenuation="
     its = 0
     while its < max_its and len(act):
         Ya = Y[act]
-        d = T.synth_all(Ya)                                             # values, derivatives (n, 3, M)
+        d = T.synth_all(Ya, values=False)                               # derivatives (n, 3, M)
         dot = lambda a, b: np.einsum("vkm,vkm->vm", a, b)
         nrm = np.cross(d["t"], d["p"], axis=1)
-        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        nrm /= np.sqrt(dot(nrm, nrm))[:, None, :]
         g = T.synth(2.0 * w * Ya)                                       # gradient on the grid
         g -= dot(g, nrm)[:, None, :] * nrm                              # (I - n n^T) g
         gmax = np.linalg.norm(g, axis=1).max(axis=1)                    # ||.||_inf over points
@@ -163,8 +163,9 @@ def reparameterize(coeffs, p, dtau_max=1e-3, tol=1e-5, max_its=20, attenuation="
         go = dtau >= tol
         if not go.any():
             break
-        d = {k: a[go] for k, a in d.items()}
-        nrm, v, dtau, act = nrm[go], v[go], dtau[go], act[go]
+        if not go.all():
+            d = {k: a[go] for k, a in d.items()}
+            nrm, v, dtau, act = nrm[go], v[go], dtau[go], act[go]
         # geodesic (second-order) term: the point follows the surface, X - dtau v + dtau^2/2 II(v, v) n
         vg = T.synth(v)
         E, F, G = dot(d["t"], d["t"]), dot(d["t"], d["p"]), dot(d["p"], d["p"])

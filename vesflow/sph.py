@@ -223,8 +223,9 @@ class Transform:
         shape = gt.shape[:-2] + (self.npts,)
         return g0.reshape(shape), gt.reshape(shape), gp.reshape(shape)
 
-    def synth_all(self, coeffs):
-        """Values and first and second derivatives at once: dict with keys '', 't', 'p', 'tt', 'tp', 'pp'."""
+    def synth_all(self, coeffs, values=True):
+        """Values and first and second derivatives at once: dict with keys '', 't', 'p', 'tt', 'tp', 'pp'
+        ('' left out when not values)."""
         padded = self.pad(coeffs)
         m = self._dphi
         out = {}
@@ -236,6 +237,8 @@ class Transform:
         ddcs = (-m * m * self.cos_m, -m * m * self.sin_m)
         for key, F, trig in (("", F0, cs), ("p", F0, dcs), ("pp", F0, ddcs),
                              ("t", F1, cs), ("tp", F1, dcs), ("tt", F2, cs)):
+            if key == "" and not values:
+                continue
             g = self._fourier_step(F, *trig)
             out[key] = g.reshape(g.shape[:-2] + (self.npts,))
         return out
