@@ -264,6 +264,8 @@ def cmd_run(rest):
         if run is not None and writer.last_checkpoint_time != run.t:
             writer.write_checkpoint(run.checkpoint(), force=True)
         raise
+    except SceneError:
+        raise
     except Exception as e:                   # a PETSc error or a bug: one line, the last good state saved
         if opts["traceback"]:
             traceback.print_exc()

@@ -127,7 +127,7 @@ def check_options(argv=(), prefix=None, origins=None):
             for k, (_, name, value) in enumerate(pairs):
                 db.setValue(name, value)
                 active.append(k)
-                e = _configure_stand_in(prefix, complete=k == len(pairs) - 1)
+                e = _configure_stand_in(prefix, False)
                 if e is not None:
                     culprit, err = k, e
                     break
