@@ -59,6 +59,8 @@ BAD = [
     (["-pc_type", "python"], "-pc_type python", "needs -pc_python_type"),
     (["-pc_type", "python", "-pc_python_type", "nosuch.Module"], "-pc_python_type nosuch.Module",
      "No module named 'nosuch'"),
+    (["-pc_type", "python", "-pc_python_type", "vesflow.timing.Timers"], "-pc_python_type vesflow.timing.Timers",
+     "not a preconditioner"),
     (["-pc_type", "lu"], "-pc_type lu", "matrix-free"),           # valid type, needs matrix entries
     (["-pc_type", "jacobi"], "-pc_type jacobi", "matrix-free"),   # ... found at its first apply
     ("options file", "bad.opts:3: -ksp_rtol abc", "Input string abc has no numeric value"),

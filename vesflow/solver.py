@@ -71,9 +71,13 @@ def _configure_stand_in(prefix, complete=True):
         configure_ksp(ksp, A, prefix, default_pc=_StandInPC)
         pc = ksp.getPC()
         if pc.getType() == "python":
-            if complete and pc.getPythonContext() is None:
+            ctx = pc.getPythonContext()
+            if complete and ctx is None:
                 return OptionError("-pc_type python: needs -pc_python_type MODULE.CLASS "
                                    "(vesflow.precond.BlockJacobi or vesflow.precond.SphereSpectral)")
+            if ctx is not None and not callable(getattr(ctx, "apply", None)):
+                return OptionError(f"-pc_python_type {pc.getPythonType()}: not a preconditioner (no method "
+                                   "apply(pc, x, y)); vesflow's are vesflow.precond.BlockJacobi and SphereSpectral")
             pc.setType("none")
         try:
             ksp.setUp()
