@@ -159,7 +159,7 @@ class SphereSpectral(_PerVesicle):
         super().__init__(lag)
         self.spheres = {}
 
-    def observe(self, its, failed=False):
+    def observe(self, its, failed=False, seconds=None):
         """The blocks depend on the radii only: nothing goes stale with the shapes."""
 
     def block_parts(self, op):
