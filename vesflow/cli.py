@@ -4,11 +4,12 @@ from __future__ import annotations
 import os
 import shlex
 import sys
+import traceback
 
-from .errors import NumericalFailure, OptionError, SceneError, VesflowError
+from .errors import NumericalFailure, OptionError, RunError, SceneError, VesflowError
 
 USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc and -ves_ options ...]
-       vesflow check SCENE.toml [-ves_ options]
+       vesflow check SCENE.toml [-ves_ and PETSc options]
        vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none]
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
        vesflow run -help          every vesflow option with its default"""
@@ -36,17 +37,46 @@ def main(argv=None):
             return render_main(rest, prog="vesflow render")
         raise SceneError(f"unknown command {cmd!r}: use run, check, render or study")
     except SceneError as e:
+        _quiet_petsc_exit()
         if not _QUIET:
             print(f"vesflow: error: {e}", file=sys.stderr)
         return 2
     except VesflowError as e:
+        _quiet_petsc_exit()
         if not _QUIET:
             print(f"vesflow: {type(e).__name__}: {e}", file=sys.stderr)
         return e.exit_status
     except KeyboardInterrupt:
+        _quiet_petsc_exit()
         print("\nvesflow: interrupted; continue from the last checkpoint with vesflow run --restart FILE",
               file=sys.stderr)
         return 130
+    except Exception as e:                  # a bug outside a run's steps: one line too
+        _quiet_petsc_exit()
+        from .solver import error_reason
+        if _wants_traceback(rest):
+            traceback.print_exc()
+        if not _QUIET:
+            print(f"vesflow: unexpected error: {error_reason(e)} (-ves_traceback shows the full trace)",
+                  file=sys.stderr)
+        return 3
+
+
+def _wants_traceback(args):
+    from . import options
+    raw = options.argv_getter(args)("-ves_traceback", bool, False)
+    try:
+        return raw is not None and options.parse_value("-ves_traceback", raw)
+    except VesflowError:
+        return False
+
+
+def _quiet_petsc_exit():
+    """After an error, PETSc's exit report of unused options (most are unread because the run
+    stopped) would follow the one-line message: switch it off."""
+    PETSc = sys.modules.get("petsc4py.PETSc")
+    if PETSc is not None and PETSc.Sys.isInitialized():
+        PETSc.Options().setValue("-options_left", "0")
 
 
 def _split_run_args(rest):
@@ -71,32 +101,41 @@ def _split_run_args(rest):
     return scene_path, out, restart, petsc
 
 
-def expand_options_files(args, _depth=0):
+def expand_options_files(args, origins=None):
     """Replace every `-options_file FILE` by the options in FILE, in place (PETSc's order:
     later options override earlier ones, so the command line after it wins).  The file is
     PETSc's format: options and values separated by blanks, `#` starts a comment.  A missing
     file, a line that does not start with an option or an unknown -ves_ option in it is a
-    SceneError naming the file and line."""
+    SceneError naming the file and line.  origins: a list, filled with where each returned
+    token came from ("FILE:LINE", None for the command line)."""
+    out, where = _expand(list(args), [None] * len(args), 0)
+    if origins is not None:
+        origins[:] = where
+    return out
+
+
+def _expand(args, where, depth):
     from . import options
-    out, k = [], 0
+    out, out_where, k = [], [], 0
     while k < len(args):
         a = args[k]
         if a != "-options_file":
             out.append(a)
+            out_where.append(where[k])
             k += 1
             continue
         if k + 1 >= len(args) or args[k + 1].startswith("-"):
             raise SceneError("-options_file needs a file name")
         path = args[k + 1]
         k += 2
-        if _depth > 8:
+        if depth > 8:
             raise SceneError(f"-options_file {path}: options files nested more than 8 deep")
         try:
             with open(path, encoding="utf-8") as fh:
                 text = fh.read()
         except (OSError, UnicodeDecodeError) as e:
             raise SceneError(f"-options_file {path}: cannot read it ({getattr(e, 'strerror', None) or e})") from None
-        tokens = []
+        tokens, token_where = [], []
         for n, line in enumerate(text.splitlines(), 1):
             try:
                 toks = shlex.split(line, comments=True)
@@ -111,22 +150,30 @@ def expand_options_files(args, _depth=0):
             except OptionError as e:
                 raise OptionError(f"{path}:{n}: {e}") from None
             tokens += toks
-        out += expand_options_files(tokens, _depth + 1)
-    return out
+            token_where += [f"{path}:{n}"] * len(toks)
+        sub, sub_where = _expand(tokens, token_where, depth + 1)
+        out += sub
+        out_where += sub_where
+    return out, out_where
 
 
 def cmd_check(rest):
-    """Validate a scene (with the -ves_ / -ts_ options of a run applied) and print its effects
-    and the cost estimate."""
+    """Validate a scene (with the -ves_ / -ts_ options of a run applied) and PETSc's options, and
+    print its effects and the cost estimate."""
     from . import options, scene as scenemod
     from .costs import estimate
     if not rest or rest[0].startswith("-"):
         raise SceneError("usage: vesflow check SCENE.toml [-ves_ options]")
-    args = expand_options_files(rest[1:])
+    origins = []
+    args = expand_options_files(rest[1:], origins)
     options.check_unknown([a for a in args if a.startswith("-ves_")])
     getter = options.argv_getter(args)
     sc = options.apply_overrides(scenemod.load_scene(rest[0]), getter)
     opts = options.read_options(getter, sc)
+    if any(name not in options.OPTIONS for _, name, _ in options.argv_pairs(args)):   # PETSc's options
+        from .solver import check_options
+        _init_petsc(args)
+        check_options(args, origins=origins)
     print(sc.summary())
     print(estimate(sc, opts))
     return 0
@@ -140,7 +187,8 @@ def cmd_run(rest):
         return 0
     scene_path, out, restart, cmdline = _split_run_args(rest)
     # validate our own options before PETSc starts (one-line errors, exit 2)
-    cmdline = expand_options_files(cmdline)
+    cmd_origins = []
+    cmdline = expand_options_files(cmdline, cmd_origins)
     options.check_unknown([a for a in cmdline if a.startswith("-ves_")])
     checkpoint = None
     if restart is not None:
@@ -155,10 +203,11 @@ def cmd_run(rest):
         petsc_args = shlex.split(str(prev.get("options", "")))
         for earlier in prev.get("restart_options", []):
             petsc_args += shlex.split(str(earlier))
+        origins = [f"the options stored in {restart}"] * len(petsc_args) + cmd_origins
         petsc_args += cmdline
     else:
         sc = scenemod.load_scene(scene_path) if scene_path else scenemod.default_scene()
-        petsc_args = cmdline
+        petsc_args, origins = cmdline, cmd_origins
     getter = options.argv_getter(petsc_args)
     sc = options.apply_overrides(sc, getter)
     opts = options.read_options(getter, sc)
@@ -166,18 +215,14 @@ def cmd_run(rest):
     threads.configure(opts["blas_threads"])   # before the compiled kernels are loaded
     if restart is not None and (sc.p != int(prev["p"]) or sc.n_vesicles != int(prev["n_vesicles"])):
         raise OptionError(f"-ves_p = {sc.p}: a restart keeps the p = {int(prev['p'])} of {restart}")
-    import petsc4py
-    petsc4py.init([sys.argv[0]] + petsc_args)
-    from petsc4py import PETSc
-    db = PETSc.Options()
-    for a in petsc_args:                     # our own options are read above: mark them used for -options_left
-        if a.startswith(("-ves_", "-ts_")) and db.hasName(a[1:]):
-            db.getString(a[1:], "")
+    PETSc = _init_petsc(petsc_args)
     if PETSc.COMM_WORLD.getSize() > 1:
         global _QUIET
         _QUIET = PETSc.COMM_WORLD.getRank() != 0
         raise SceneError(f"{PETSc.COMM_WORLD.getSize()} MPI processes: parallel runs are not available yet "
                          "(the vesicle partition is a later issue); run one process and use OMP_NUM_THREADS threads")
+    from .solver import check_options
+    check_options(petsc_args, origins=origins)      # PETSc's options too, before the output file exists
     from .io import OutputWriter
     from .simulation import Run, check_available
     check_available(sc, opts)                # before the output file exists
@@ -221,6 +266,12 @@ def cmd_run(rest):
         if run is not None and writer.last_checkpoint_time != run.t:
             writer.write_checkpoint(run.checkpoint(), force=True)
         raise
+    except SceneError:
+        raise
+    except Exception as e:                   # a PETSc error or a bug: one line, the last good state saved
+        if opts["traceback"]:
+            traceback.print_exc()
+        raise _run_error(e, run, writer, out) from e
     finally:
         writer.close()
     if rank0:
@@ -229,6 +280,37 @@ def cmd_run(rest):
               f"rejected steps; time {tm['total']:.1f} s (setup {tm['setup']:.1f}, self {tm['self']:.1f}, "
               f"near {tm['near']:.1f}, far {tm['far']:.1f}, repar {tm['repar']:.1f})")
     return 0
+
+
+def _init_petsc(petsc_args):
+    """Initialize PETSc with the options; vesflow's own (read above) are marked used, so that
+    PETSc's report of unused options (-options_left, at exit) lists only misspelled ones."""
+    import petsc4py
+    from . import options
+    petsc4py.init([sys.argv[0]] + petsc_args)
+    from petsc4py import PETSc
+    db = PETSc.Options()
+    for _, name, _ in options.argv_pairs(petsc_args):
+        if name in options.OPTIONS and db.hasName(name[1:]):
+            db.getString(name[1:], "")
+    return PETSc
+
+
+def _run_error(e, run, writer, out):
+    """RunError for an unexpected exception e during a run: where, why, and the last good state
+    saved (or why it could not be)."""
+    from .solver import error_reason
+    if run is None:
+        return RunError(f"setting up the run: {error_reason(e)}; nothing was computed "
+                        "(-ves_traceback shows the full trace)")
+    try:
+        run.save_last_good_state()
+        saved = f"the last good state (t = {run.t:.6g}) is saved in {out}: vesflow run --restart {out} continues it"
+    except Exception as e2:
+        last = writer.last_checkpoint_time
+        saved = (f"the last good state could not be saved ({error_reason(e2)})"
+                 + (f"; {out} has the checkpoint at t = {last:.6g}" if last is not None else ""))
+    return RunError(f"{run.position()}: {error_reason(e)}; {saved} (-ves_traceback shows the full trace)")
 
 
 def _reset_preconditioner(stepper):

@@ -38,3 +38,10 @@ class NumericalFailure(VesflowError):
     """Unrecoverable numerical failure (NaN, dt below its minimum); last good state was saved."""
 
     exit_status = 3
+
+
+class RunError(VesflowError):
+    """An unexpected error during a run (a PETSc error, a bug): says where (step, time) and why;
+    the last good state was saved.  Exit status 3."""
+
+    exit_status = 3

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from .errors import OptionError
 
 __all__ = ["Option", "OPTIONS", "REGISTRY", "OptionValues", "apply_overrides", "read_options", "help_text",
-           "dict_getter", "argv_getter", "petsc_getter", "check_unknown", "parse_value"]
+           "dict_getter", "argv_getter", "argv_pairs", "petsc_getter", "check_unknown", "parse_value"]
 
 
 @dataclass(frozen=True)
@@ -150,6 +150,8 @@ REGISTRY: tuple[Option, ...] = (
        gt=0, default_text="output.every"),
     _O("-ves_progress", str, "auto", "progress line: auto = only on a terminal", "output",
        choices=("auto", "on", "off")),
+    _O("-ves_traceback", bool, False, "an unexpected error (a PETSc error, a bug) prints Python's full "
+       "traceback after its one-line message (for debugging)", "output"),
 )
 del _O
 OPTIONS: dict[str, Option] = {o.name: o for o in REGISTRY}
@@ -379,21 +381,29 @@ def dict_getter(d: Mapping):
     return lambda name, type_, default: norm.get(name)
 
 
-def argv_getter(argv):
-    """Getter over a PETSc-style argument list ``[-name value | -flag ...]`` without PETSc.
-    A name followed by another option name (or nothing) is a flag (value "")."""
-    vals = {}
+def argv_pairs(argv):
+    """The options of a PETSc-style argument list ``[-name value | -flag ...]`` in order, as
+    (index of the name in argv, "-name", value or None for a flag).  A name followed by another
+    option name (or nothing) is a flag; a negative number is a value."""
     args = list(argv)
-    k = 0
+    out, k = [], 0
     while k < len(args):
         a = args[k]
         if a.startswith("-") and not _is_number(a):
+            name = "-" + a.lstrip("-")
             if k + 1 < len(args) and not (args[k + 1].startswith("-") and not _is_number(args[k + 1])):
-                vals["-" + a.lstrip("-")] = args[k + 1]
+                out.append((k, name, args[k + 1]))
                 k += 2
                 continue
-            vals["-" + a.lstrip("-")] = ""
+            out.append((k, name, None))
         k += 1
+    return out
+
+
+def argv_getter(argv):
+    """Getter over a PETSc-style argument list ``[-name value | -flag ...]`` without PETSc
+    (see argv_pairs; a flag has the value "")."""
+    vals = {name: ("" if value is None else value) for _, name, value in argv_pairs(argv)}
 
     def get(name, type_, default):
         if name not in vals:

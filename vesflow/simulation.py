@@ -161,6 +161,38 @@ class Run:
         with self.timers.stage("collision"):
             return collision.contacts(self.stepper.surface, self.q_near) > 0
 
+    def _attempt(self, dt):
+        """_try(dt), noting the attempt (for `position`); if it raises, the stepper is put back
+        to the last accepted state first."""
+        st = self.stepper
+        saved = (st.coeffs.copy(), st.time, st.last)
+        self.attempt = (self.counts["accepted"] + self.counts["rejected"] + 1, self.t, dt)
+        try:
+            out = self._try(dt)
+        except BaseException:
+            st.coeffs, st.time, st.last = saved
+            raise
+        self.attempt = None
+        return out
+
+    def position(self):
+        """Where the run is, for an error message: 'step 3 (t = 0.1, dt = 0.05)'."""
+        a = getattr(self, "attempt", None)
+        if a is not None:
+            return f"step {a[0]} (t = {a[1]:.6g}, dt = {a[2]:.3g})"
+        n = self.counts["accepted"] + self.counts["rejected"]
+        return f"after step {n} (t = {self.t:.6g})" if n else f"before the first step (t = {self.t:.6g})"
+
+    def save_last_good_state(self):
+        """Write the steps so far, the timings and a checkpoint of the last accepted state
+        (after an unexpected error: `_attempt` has put the stepper back to it)."""
+        if self.writer is None:
+            return
+        self._flush_steps()
+        self.writer.write_timings(self.timers.as_dict())
+        if self.writer.last_checkpoint_time != self.t:
+            self.writer.write_checkpoint(self.checkpoint(), force=True)
+
     def _next_dt(self, dt, err):
         o = self.opts
         if o["adapt"] == "none":
@@ -186,7 +218,7 @@ class Run:
                 break
             dt = min(self.dt, self.horizon - self.t)
             q_used = (self.q_self, self.q_near)
-            sol, reason, its, err = self._try(dt)
+            sol, reason, its, err = self._attempt(dt)
             accepted = sol is not None
             self.rows.append((self.t, dt, int(accepted), its, err, reason) + q_used)
             self.iterations += its

@@ -19,6 +19,7 @@ from .errors import ConvergenceError
 from .flows import background_velocity
 from .layerpot.evaluator import LayerPotentials, Settings
 from .operator import StepOperator
+from .solver import configure_ksp
 from .surface import Surface
 from .timing import Timers
 
@@ -135,20 +136,7 @@ class Stepper:
         else:
             x.set(0.0)
         ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
-        if self.ksp_prefix:
-            ksp.setOptionsPrefix(self.ksp_prefix)
-        ksp.setOperators(A)
-        ksp.setType("gmres")
-        ksp.setTolerances(rtol=1e-8, max_it=1000)
-        ksp.setInitialGuessNonzero(True)
-        pc = ksp.getPC()
-        opts = PETSc.Options(self.ksp_prefix)
-        if not opts.hasName("pc_type"):
-            if getattr(self, "_pc_context", None) is None:
-                self._pc_context = _default_pc()
-            pc.setType("python")
-            pc.setPythonContext(self._pc_context)
-        ksp.setFromOptions()
+        configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context)
         with self.timers.stage("setup"):
             ksp.setUp()
         t_solve = time.perf_counter()
@@ -156,6 +144,7 @@ class Stepper:
         t_solve = time.perf_counter() - t_solve
         self.timers.count("solve")
         reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+        pc = ksp.getPC()
         observe = getattr(pc.getPythonContext() if pc.getType() == "python" else None, "observe", None)
         rtol = ksp.getTolerances()[0]
         ksp.destroy()
@@ -181,6 +170,12 @@ class Stepper:
         u, s = op.split(x.getArray().copy())
         self.lp_last = lp
         return Solution(u.copy(), s.copy(), its, reason)
+
+    def default_pc_context(self):
+        """The block-Jacobi PC context, kept across solves (it reuses LU factors, -ves_pc_lag)."""
+        if getattr(self, "_pc_context", None) is None:
+            self._pc_context = _default_pc()
+        return self._pc_context
 
     def velocity(self):
         """Instantaneous velocity and tension (one solve with dt = 0: no implicit bending)."""
