@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import shlex
 import sys
+import time
 import traceback
 
 from .errors import NumericalFailure, OptionError, RunError, SceneError, VesflowError
@@ -16,9 +17,12 @@ USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc
 
 
 _QUIET = False          # ranks other than 0 print no error messages
+_T_MAIN = None          # when main() started: the time to the first step is printed from it
 
 
 def main(argv=None):
+    global _T_MAIN
+    _T_MAIN = time.perf_counter()
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
@@ -278,7 +282,9 @@ def cmd_run(rest):
         tm = run.timers.as_dict()
         print(f"vesflow: done at t = {run.t:g}: {run.counts['accepted']} accepted, {run.counts['rejected']} "
               f"rejected steps; time {tm['total']:.1f} s (setup {tm['setup']:.1f}, self {tm['self']:.1f}, "
-              f"near {tm['near']:.1f}, far {tm['far']:.1f}, repar {tm['repar']:.1f})")
+              f"near {tm['near']:.1f}, far {tm['far']:.1f}, repar {tm['repar']:.1f})"
+              + (f"; first step after {run.first_step_at - _T_MAIN:.2f} s (imports, shapes, caches)"
+                 if run.first_step_at is not None and _T_MAIN is not None else ""))
     return 0
 
 

@@ -84,6 +84,7 @@ class Run:
         self.reparam_iterated = 0         # accepted steps kept out of contact by the iterated projection
         self.rows = []
         self.iterations = 0               # GMRES iterations of every solve of this process
+        self.first_step_at = None         # perf_counter() when the first step began
         if checkpoint is None:
             S = Surface(coeffs, self.p)
             self.area0, self.volume0 = S.area(), S.volume()
@@ -209,6 +210,8 @@ class Run:
     def run(self):
         st = self.stepper
         t_start = _time.perf_counter()
+        if self.first_step_at is None:
+            self.first_step_at = t_start
         if self.n_accepted == 0 and self.t == 0.0 and self.writer is not None:
             self._frame()
         rejects_in_row = 0
