@@ -69,10 +69,13 @@ def main(argv=None):
     ap.add_argument("--nves", type=int, default=2)
     ap.add_argument("--dt", type=float, default=0.1)
     ap.add_argument("--study", action="store_true", help="the accuracy-cost study's scene, adaptive")
+    ap.add_argument("--blas-threads", type=int, default=1, help="-ves_blas_threads of the run")
     ap.add_argument("--pc", default=None, help="-pc_python_type (default: the run's choice)")
     ap.add_argument("extra", nargs="*", help="more options as name=value (e.g. ves_pc_lag=1)")
     args = ap.parse_args(argv)
 
+    from vesflow import threads
+    threads.configure(args.blas_threads)          # the run's thread policy, before the kernels load
     from petsc4py import PETSc
     from vesflow import options as O, scene as S
     from vesflow.simulation import Run

@@ -14,8 +14,9 @@ def test_configure_limits_blas_and_sets_passive_openmp_waiting(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
     try:
         got = threads.configure(1)
+        import scipy.linalg  # noqa: F401  (scipy's own OpenBLAS: it too must be limited)
         blas = [p for p in threadpool_info() if p["user_api"] == "blas"]
-        assert blas and all(p["num_threads"] == 1 for p in blas)
+        assert len(blas) >= 2 and all(p["num_threads"] == 1 for p in blas), blas
         assert got == {"openmp": 2, "blas": 1}
         assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE"
         assert "OpenMP 2 (PASSIVE wait), BLAS 1" in threads.describe()
@@ -43,3 +44,23 @@ def test_a_run_sets_the_policy_before_the_kernels_are_loaded():
                            env=env, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "configured 2" in r.stdout and "wait ACTIVE" in r.stdout
+
+
+def test_map_vesicles_keeps_order_and_uses_no_more_threads_than_free_cores(monkeypatch):
+    import threading
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    names = set()
+
+    def work(i):
+        names.add(threading.current_thread().name)
+        return i * i
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.2, 0.0, 0.0))       # idle machine: 2 threads
+    assert threads.free_cores() == 2
+    assert threads.map_vesicles(work, range(7)) == [i * i for i in range(7)]
+    assert names and all(n.startswith("vesflow") for n in names)
+    names.clear()
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.9, 0.0, 0.0))       # the other core is busy: serial
+    assert threads.free_cores() == 1
+    assert threads.map_vesicles(work, range(3)) == [0, 1, 4]
+    assert names == {threading.current_thread().name}

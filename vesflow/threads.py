@@ -6,7 +6,8 @@
   thread takes the core that another process, or our own main thread, needs.
 - Per-vesicle set-up (self operators, preconditioner blocks) runs on the same number of
   Python threads, one vesicle each (`map_vesicles`): numpy releases the GIL inside its
-  array operations and BLAS calls, which is where that work is.
+  array operations and BLAS calls, which is where that work is; only as many as there are
+  idle cores (the load average says), so that a shared machine is not oversubscribed.
 - BLAS (numpy's OpenBLAS: the batched per-vesicle GEMV/GEMM of the self operators, the
   transforms, the block assembly and LU): one thread by default (-ves_blas_threads).  Its
   matrices are small and per vesicle: threads there cost more in start-up and busy-waiting
@@ -26,6 +27,8 @@ _state = {"limiter": None, "blas": None, "pool": None}
 def configure(blas_threads=1):
     """Set the policy above for this process; returns {'openmp': n, 'blas': n}."""
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    import numpy  # noqa: F401  (numpy and scipy each carry an OpenBLAS: load both, then limit both)
+    import scipy.linalg  # noqa: F401
     from threadpoolctl import threadpool_limits
     _state["limiter"] = threadpool_limits(limits=int(blas_threads), user_api="blas")
     _state["blas"] = int(blas_threads)
@@ -47,11 +50,24 @@ def describe():
             f"BLAS {blas if blas is not None else 'environment default'}")
 
 
+def free_cores():
+    """Cores not busy with other work: the cores minus the 1-minute load average, plus the one
+    this process is using (at least 1)."""
+    ncpu = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        return ncpu
+    return max(1, min(ncpu, int(ncpu - load + 1.0 + 0.5)))
+
+
 def map_vesicles(fn, items):
-    """[fn(i) for i in items], on openmp_threads() Python threads when there are several
-    (one item per task, results in order); in this thread otherwise."""
+    """[fn(i) for i in items], on up to openmp_threads() Python threads (one item per task,
+    results in order), but no more than free_cores(): on a machine whose other cores are busy
+    the threads only contend (measured, p = 12 pair at load 6: 2 threads 5.6-8.0 s vs 1 thread
+    4.5-4.9 s); in this thread when one is all there is."""
     items = list(items)
-    n = min(openmp_threads(), len(items))
+    n = min(openmp_threads(), len(items), free_cores())
     if n <= 1:
         return [fn(i) for i in items]
     pool = _state["pool"]
