@@ -34,6 +34,8 @@ def main(argv=None):
         if cmd == "check":
             return cmd_check(rest)
         if cmd == "study":
+            from . import threads
+            threads.configure()                  # the runs' thread policy (vesflow.threads)
             from .study import main as study_main
             return study_main(rest)
         if cmd == "render":
