@@ -212,12 +212,15 @@ def render(source, movie=None, frames_dir=None, color="tension", size=(960, 540)
 
 # ---------------------------------------------------------------------- drawing
 def _auto_workers(nf):
-    """Worker processes by default: one per CPU for long renders (docs/output.md, measured)."""
+    """Worker processes by default: the idle CPUs (count minus the 1-minute load average),
+    at most 4, for renders of 60 frames or more; 1 otherwise.  Mesa's llvmpipe already
+    draws on every CPU, so workers only pay off on idle CPUs (docs/output.md)."""
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:
         cpus = os.cpu_count() or 1
-    return 1 if nf < 60 else min(cpus, 4)
+    idle = int(cpus - os.getloadavg()[0])
+    return 1 if nf < 60 or idle < 2 else min(idle, 4)
 
 
 def _chunks(nf, n_workers):
@@ -315,22 +318,31 @@ class _Painter:
         shown.Modified()
 
     def draw(self, positions):
-        """Yield (position, RGB image, PNG path or None) for frame positions."""
+        """Yield (position, RGB image, PNG path or None) for frame positions; PNGs are
+        encoded in a thread (Pillow releases the GIL) while the next frame is drawn."""
+        from concurrent.futures import ThreadPoolExecutor
+
         from PIL import Image
         spec = self.spec
-        for k, fm in zip(positions, self.src.read(list(positions), spec.color)):
-            self._mesh(fm)
-            c = spec.cameras[k]
-            self.pl.camera.position, self.pl.camera.focal_point, self.pl.camera.up = c
-            self.pl.camera.view_angle = cam.VIEW_ANGLE
-            self.pl.renderer.ResetCameraClippingRange()
-            self.pl.render()
-            img = self.overlay.draw(self.pl.screenshot(return_img=True), spec.times[k], c)
-            png = None
-            if spec.frames_dir is not None:
-                png = str(Path(spec.frames_dir) / f"frame_{k:06d}.png")
-                Image.fromarray(img).save(png, compress_level=1)
-            yield k, img, png
+        with ThreadPoolExecutor(1) as saver:
+            pending = []
+            for k, fm in zip(positions, self.src.read(list(positions), spec.color)):
+                self._mesh(fm)
+                c = spec.cameras[k]
+                self.pl.camera.position, self.pl.camera.focal_point, self.pl.camera.up = c
+                self.pl.camera.view_angle = cam.VIEW_ANGLE
+                self.pl.renderer.ResetCameraClippingRange()
+                self.pl.render()
+                img = self.overlay.draw(self.pl.screenshot(return_img=True), spec.times[k], c)
+                png = None
+                if spec.frames_dir is not None:
+                    png = str(Path(spec.frames_dir) / f"frame_{k:06d}.png")
+                    pending.append(saver.submit(Image.fromarray(img).save, png, compress_level=1))
+                    while len(pending) > 2:
+                        pending.pop(0).result()
+                yield k, img, png
+            for f in pending:
+                f.result()
 
 
 class _Progress:
