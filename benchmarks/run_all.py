@@ -26,6 +26,7 @@ SCRIPTS = [
     ("self_operator.py", ["--degrees", "8", "16", "--setup-ves", "1", "--stream-mb", "0", "--rounds", "3"]),
     ("far_field.py", ["--sizes", "4", "8", "16", "--repeat", "1", "--max-seconds", "60", "--budget", "120"]),
     ("gmres_iterations.py", ["--sizes", "2", "8", "--degrees", "8"]),
+    ("render_movie.py", ["--frames", "60"]),
 ]
 
 

@@ -271,6 +271,10 @@ class _Painter:
         self.src = open_frames(spec.source, spec.frames, spec.resolution)
         self.pl = pv.Plotter(off_screen=True, window_size=list(spec.size))
         self.pl.set_background(spec.background)
+        # anti-aliasing by FXAA (one screen-space pass): with Mesa's llvmpipe, 4x multisampling
+        # costs twice the whole frame (docs/output.md, "Speed")
+        self.pl.ren_win.SetMultiSamples(0)
+        self.pl.renderer.SetUseFXAA(True)
         text_color = (0, 0, 0) if spec.background == "white" else (255, 255, 255)
         self.overlay = Overlay(spec.layout, bar=spec.bar, cmap=spec.cmap, text_color=text_color)
         self.shown = None
