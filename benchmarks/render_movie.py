@@ -14,7 +14,6 @@ differ from the white background, outside the label boxes when the renderer repo
 import argparse
 import inspect
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path

@@ -176,7 +176,7 @@ def render(source, movie=None, frames_dir=None, color="tension", size=(960, 540)
             mode = "follow" if period == 0 and fit_d > AUTO_FOLLOW_GAIN * tight else "fit"
         cameras = fit if mode == "fit" else cam.follow_cameras(extents, smooth)
 
-    spec = _Spec(source=str(src.path), frames=src.index if src.kind == "h5" else frames, resolution=resolution,
+    spec = _Spec(source=str(src.path), frames=src.index if src.kind == "h5" else frames, resolution=src.q,
                  color=color, clim=clim, cmap=cmap or _CMAPS.get(color), size=size, background=background,
                  period=period, periodic=periodic, cameras=cameras, layout=layout, bar=bar, times=labels,
                  frames_dir=None if frames_dir is None else str(frames_dir))

@@ -16,7 +16,7 @@ then north and south pole, per vesicle).
 The default resolution is the smallest q in RESOLUTIONS (and >= p) at which the
 normals of adjacent triangles differ by at most MAX_FACET_ANGLE degrees on the
 first, middle and last frame (up to 16 vesicles of each), i.e. no visible facets;
-the facet angle falls like 1/q (p = 6 biconcave cell: 18 degrees at q = 24, 9.6 at 48).
+the facet angle falls like 1/q (p = 6 biconcave cell: 18.2 degrees at q = 24, 9.6 at 48).
 
 .pvd collections carry no coefficients: their meshes are drawn as stored.
 """
