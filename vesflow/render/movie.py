@@ -350,11 +350,12 @@ class _Painter:
 
 
 class _Progress:
-    """Progress on stderr: one updated line on a terminal, a line per 10% otherwise."""
+    """Progress on stderr: one updated line on a terminal; in a log, a line per 10% of
+    renders of 50 frames or more."""
 
     def __init__(self, n, on):
-        self.n, self.on = n, bool(on)
         self.tty = sys.stderr.isatty()
+        self.n, self.on = n, bool(on) and (self.tty or n >= 50)
         self.t0 = _time.perf_counter()
         self.next = 0.1
 
