@@ -19,7 +19,8 @@ from vesflow.render import fit_camera, main, render  # noqa: E402
 from vesflow.render.camera import Extent, follow_cameras, project, view_basis  # noqa: E402
 from vesflow.render.labels import make_layout, wrap_title, text_extent  # noqa: E402
 from vesflow.render.periodic import wrap_and_image  # noqa: E402
-from vesflow.render.surfaces import RunFrames, surface_on_grid  # noqa: E402
+from vesflow.io import iter_frames  # noqa: E402
+from vesflow.render.surfaces import RunFrames, auto_resolution, surface_on_grid  # noqa: E402
 from vesflow.shapes import make_shape  # noqa: E402
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
@@ -159,6 +160,11 @@ def test_p6_default_resolution_has_no_facets(tmp_path, shape):
         fm = next(src.read([1], "tension"))
         angles[q] = _max_adjacent_normal_angle(fm.points.reshape(-1, 3), fm.all_faces())
     assert angles[None] < 10.0 < angles[6], angles
+    # a large suspension keeps within the point budget, and says so when that leaves facets
+    c = next(iter_frames(path, fields=["coefficients"], frames=[1]))["coefficients"]
+    assert auto_resolution(c, 6, 2) == RunFrames(path).q
+    with pytest.warns(UserWarning, match="2000 vesicles at resolution 24: adjacent triangles differ by up to"):
+        assert auto_resolution(c, 6, 2000) == 24
 
 
 def test_normals_are_analytic_at_grid_and_poles():

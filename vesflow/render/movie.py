@@ -129,6 +129,8 @@ def render(source, movie=None, frames_dir=None, color="tension", size=(960, 540)
     nf = len(src.times)
     if fps is None:
         fps = int(np.clip(round(nf / 10), 5, 30))
+    if int(fps) != fps or fps < 1:
+        raise ValueError(f"render: fps = {fps}: must be a positive integer")
     if smooth is None:
         smooth = max(1.0, 0.5 * fps)
 

@@ -17,6 +17,8 @@ The default resolution is the smallest q in RESOLUTIONS (and >= p) at which the
 normals of adjacent triangles differ by at most MAX_FACET_ANGLE degrees on the
 first, middle and last frame (up to 16 vesicles of each), i.e. no visible facets;
 the facet angle falls like 1/q (p = 6 biconcave cell: 18.2 degrees at q = 24, 9.6 at 48).
+Large suspensions stay within MAX_POINTS drawn points per frame (q = 48 up to 850
+vesicles), with a warning if that leaves facets.
 
 .pvd collections carry no coefficients: their meshes are drawn as stored.
 """
@@ -32,6 +34,7 @@ from .. import sph
 
 RESOLUTIONS = (24, 32, 40, 48, 56, 64, 80, 96, 128)  # the default resolution is the first of these (>= p) without facets
 MAX_FACET_ANGLE = 8.0                 # degrees between the normals of adjacent triangles
+MAX_POINTS = 4_000_000                # drawn points per frame the default resolution stays within
 UNITS = {"tension": "force/length", "speed": "length/time"}
 
 
@@ -115,12 +118,24 @@ def facet_angle(coeffs, p, q):
     return float(np.degrees(np.arccos(np.clip(cos.min(), -1.0, 1.0))))
 
 
-def auto_resolution(coeffs, p):
-    """The default resolution for surfaces (N, 3, C) (module docstring)."""
-    for q in RESOLUTIONS:
-        if q >= p and facet_angle(coeffs, p, q) <= MAX_FACET_ANGLE:
+def grid_points(q):
+    """Points per vesicle drawn on the q-grid (grid and poles)."""
+    return (q + 1) * 2 * q + 2
+
+
+def auto_resolution(coeffs, p, n_vesicles=1):
+    """The default resolution for surfaces (N, 3, C) (module docstring), within a budget
+    of MAX_POINTS drawn points for n_vesicles (a warning says when that leaves facets)."""
+    fits = [q for q in RESOLUTIONS if q >= p and n_vesicles * grid_points(q) <= MAX_POINTS] or [p]
+    for q in fits:
+        if facet_angle(coeffs, p, q) <= MAX_FACET_ANGLE:
             return q
-    return max(RESOLUTIONS[-1], p)
+    q = fits[-1]
+    import warnings
+    warnings.warn(f"render: {n_vesicles} vesicles at resolution {q}: adjacent triangles differ by up to "
+                  f"{facet_angle(coeffs, p, q):.0f} degrees (finer grids exceed {MAX_POINTS:.0e} drawn points); "
+                  f"--resolution Q sets the grid", stacklevel=2)
+    return q
 
 
 def scalar_on_grid(values, p, q):
@@ -159,7 +174,7 @@ class RunFrames:
             ves = np.unique(np.linspace(0, out.n_vesicles - 1, min(16, out.n_vesicles)).round().astype(int))
             sample = np.concatenate([fr["coefficients"][ves] for fr in
                                      iter_frames(self.path, fields=["coefficients"], frames=self.index[pick])])
-            resolution = auto_resolution(sample, self.p)
+            resolution = auto_resolution(sample, self.p, out.n_vesicles)
         q = self.p if resolution is None else int(resolution)
         if q < self.p:
             raise ValueError(f"render: resolution = {q}: must be an integer >= p = {self.p} "
