@@ -321,9 +321,13 @@ def test_layout_boxes_are_disjoint_at_every_size():
     for size in ((320, 180), (480, 270), (960, 540), (1920, 1080), (600, 600)):
         lay = make_layout(size, "a title " * 12, ["t = 0.00", "t = 120.00"], bar=("tension (force/length)", -0.5, 2.5))
         assert not lay.overlapping(), (size, lay.boxes)
+        W, H = size
+        assert all(0 <= b[0] < b[2] <= W and 0 <= b[1] < b[3] <= H for b in lay.boxes.values()), (size, lay.boxes)
         px = lay.window_pixels()
         for name, box in lay.boxes.items():
             assert not (box[0] < px[2] and px[0] < box[2] and box[1] < px[3] and px[1] < box[3]), (size, name)
+    with pytest.raises(ValueError, match="size 160x90 is too small for the labels"):
+        make_layout((160, 90), None, ["t = 0"], bar=("tension (force/length)", -0.5, 2.5))
 
 
 def test_plot_timeseries(tmp_path):

@@ -163,8 +163,12 @@ def make_layout(size, title, time_labels, bar=None, triad=True):
     px0, py0, px1, py1 = m, top + gap, W - m, bottom_free - gap
     if py1 - py0 < 0.3 * H:
         raise ValueError(f"render: size {W}x{H} leaves too little room for the vesicles under the labels; "
-                         f"use a larger --size (at least 320x180)")
+                         f"use a larger --size")
     lay.window = (2 * px0 / W - 1, 2 * px1 / W - 1, 1 - 2 * py1 / H, 1 - 2 * py0 / H)
+    outside = [n for n, b in lay.boxes.items() if b[0] < 0 or b[1] < 0 or b[2] > W or b[3] > H]
+    if lay.overlapping() or outside:
+        raise ValueError(f"render: size {W}x{H} is too small for the labels "
+                         f"({', '.join(outside) or ' and '.join(lay.overlapping()[0])}); use a larger --size")
     return lay
 
 

@@ -100,7 +100,7 @@ def render(source, movie=None, frames_dir=None, color="tension", size=(960, 540)
     follow) | follow | fit | fixed (needs position and focal_point).  view: (azimuth,
     elevation) in degrees of fit and follow.  smooth: follow's smoothing in frames
     (default half a second of movie).  resolution: grid degree q >= p of the surfaces
-    (run files; default surfaces.DEFAULT_RESOLUTION).  workers: processes drawing frames
+    (run files; default: the coarsest without facets, surfaces.auto_resolution).  workers: processes drawing frames
     (None: auto).  period: the periodic cube's side (default: the run file's
     periodic_length; 0: free space); periodic: images | wrap.  Returns a RenderResult."""
     t_start = _time.perf_counter()
