@@ -20,9 +20,9 @@ def pair_centres(n_frames, separation):
 
 
 def write_pair_run(path, p=8, n_frames=30, horizon=12.0, separation=10.0, title="two vesicles in shear",
-                   period=0.0, centres=None, shape="oblate"):
+                   period=0.0, centres=None, shape="oblate", velocity=True):
     """Write the run file; returns the centres (F, N, 3).  centres overrides the pair's
-    trajectory (any number of vesicles)."""
+    trajectory (any number of vesicles); velocity=False leaves /frames/velocity out."""
     centres = pair_centres(n_frames, separation) if centres is None else np.asarray(centres, dtype=float)
     F, N = centres.shape[:2]
     unit = make_shape(shape, p, reduced_volume=0.85 if shape == "oblate" else None, rotation=(0.0, 25.0, 0.0))
@@ -39,5 +39,5 @@ def write_pair_run(path, p=8, n_frames=30, horizon=12.0, separation=10.0, title=
             vel[..., 0] = pts[..., 2]
             w.write_frame(time=t, points=pts, coefficients=coeffs, tension=tension, area=np.full(N, 4 * np.pi),
                           volume=np.full(N, 4 * np.pi / 3 * 0.85), centroid=centres[k],
-                          bending_energy=np.zeros(N), velocity=vel)
+                          bending_energy=np.zeros(N), velocity=vel if velocity else None)
     return centres

@@ -300,7 +300,7 @@ def test_render_pvd_speed(pair_file, tmp_path):
 
 def test_render_speed_needs_velocity(tmp_path):
     path = tmp_path / "novel.h5"
-    write_synthetic(path, n_frames=1, velocity=False)
+    write_pair_run(path, p=6, n_frames=1, velocity=False)
     with pytest.raises(ValueError, match="needs point data 'speed'"):
         render(path, movie=False, frames_dir=tmp_path / "png", color="speed")
     assert main([str(path), "--color", "speed", "--no-movie"]) == 2

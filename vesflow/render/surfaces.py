@@ -132,9 +132,10 @@ def auto_resolution(coeffs, p, n_vesicles=1):
             return q
     q = fits[-1]
     import warnings
+    why = (f"finer grids exceed {MAX_POINTS:.0e} drawn points" if q < max(RESOLUTIONS[-1], p)
+           else "the finest default grid")
     warnings.warn(f"render: {n_vesicles} vesicles at resolution {q}: adjacent triangles differ by up to "
-                  f"{facet_angle(coeffs, p, q):.0f} degrees (finer grids exceed {MAX_POINTS:.0e} drawn points); "
-                  f"--resolution Q sets the grid", stacklevel=2)
+                  f"{facet_angle(coeffs, p, q):.0f} degrees ({why}); --resolution Q sets the grid", stacklevel=2)
     return q
 
 
