@@ -201,6 +201,7 @@ def test_fit_camera_holds_points_tightly():
                      [xy[:, 1].min() - window[2], window[3] - xy[:, 1].max()]])
     k = int(np.argmin(gaps.max(axis=1)))
     assert np.abs(gaps[k]).max() < 1e-9 and gaps[1 - k].min() > 0.01, gaps
+    assert abs(gaps[1 - k, 0] - gaps[1 - k, 1]) < 1e-9, gaps        # centred along the other axis
 
 
 def test_follow_cameras_hold_every_frame_and_are_smooth():

@@ -8,8 +8,10 @@ x = (a - u) / ((D - c) T_x) in normalized device coordinates, T_x = tan(view
 angle / 2) W / H (and y likewise with b, v, T_y = tan(view angle / 2)).  Every point
 lies inside the window [x0, x1] x [y0, y1] iff
     D >= (max(a + x1 T_x c) - min(a + x0 T_x c)) / ((x1 - x0) T_x)    (and likewise in y)
-and u lies in [max(a + x1 T_x c) - x1 T_x D, min(a + x0 T_x c) - x0 T_x D]; the
-smallest such D and the middle of that interval frame the points tightly.
+and u lies in [max(a + x1 T_x c) - x1 T_x D, min(a + x0 T_x c) - x0 T_x D].  The
+smallest such D frames the points tightly; within the interval, the pan that leaves equal
+gaps on both sides of the picture centres it.  Only the convex hulls of the points in the
+(a, c) and (b, c) planes matter (the extremes of these ratios lie on them).
 
 follow: the per-frame distances D_k are replaced by a Gaussian-smoothed running
 maximum (the camera pulls back before the vesicles need it), then by
@@ -45,21 +47,40 @@ def _tangents(size):
     return t * size[0] / size[1], t
 
 
+def _hull(xy):
+    """The vertices of the convex hull of 2D points (K, 2) (all points if degenerate):
+    every linear function, and every ratio (a - u) / (D - c) framing needs, takes its
+    extremes there."""
+    if len(xy) > 16:
+        from scipy.spatial import ConvexHull, QhullError
+        try:
+            return xy[ConvexHull(xy).vertices]
+        except QhullError:          # collinear points: keep them all (exact, only slower)
+            pass
+    return xy
+
+
 class Extent:
     """What framing needs of one point set seen from one view into one window
-    (module docstring); merge() unites several (a camera for all of them)."""
+    (module docstring): the convex hulls of the points in the (a, c) and (b, c) planes.
+    merge() unites several (a camera for all of them)."""
 
-    def __init__(self, points, basis, size, window):
-        back, right, up = basis
-        P = np.asarray(points, dtype=float).reshape(-1, 3)
-        a, b, c = P @ right, P @ up, P @ back
+    def __init__(self, points, basis, size, window, _hulls=None):
+        self.basis, self.size, self.window = basis, size, window
         (x0, x1, y0, y1), (tx, ty) = window, _tangents(size)
-        self.basis = basis
-        self.kx = (x0 * tx, x1 * tx)
-        self.ky = (y0 * ty, y1 * ty)
+        self.kx, self.ky = (x0 * tx, x1 * tx), (y0 * ty, y1 * ty)
+        if _hulls is None:
+            back, right, up = basis
+            P = np.asarray(points, dtype=float).reshape(-1, 3)
+            a, b, c = P @ right, P @ up, P @ back
+            _hulls = (_hull(np.stack([a, c], 1)), _hull(np.stack([b, c], 1)))
+        self.ac, self.bc = _hulls
+        a, c = self.ac.T
+        b, cb = self.bc.T
         self.hi_x, self.lo_x = np.max(a + self.kx[1] * c), np.min(a + self.kx[0] * c)
-        self.hi_y, self.lo_y = np.max(b + self.ky[1] * c), np.min(b + self.ky[0] * c)
-        self.near = np.max(c) + 0.05 * max(np.ptp(a), np.ptp(b), np.ptp(c), 1e-9)   # all in front
+        self.hi_y, self.lo_y = np.max(b + self.ky[1] * cb), np.min(b + self.ky[0] * cb)
+        spread = max(np.ptp(a), np.ptp(b), np.ptp(c), 1e-9)
+        self.near = np.max(c) + 0.05 * spread                   # every point in front of the camera
 
     @property
     def distance(self):
@@ -72,13 +93,30 @@ class Extent:
         return ((self.hi_x - self.kx[1] * D, self.lo_x - self.kx[0] * D),
                 (self.hi_y - self.ky[1] * D, self.lo_y - self.ky[0] * D))
 
+    def centred_pan(self, D):
+        """(u, v) at distance D that centres the picture of the points in the window: the
+        same gap (normalized device coordinates) on both sides, by bisection (the sum of
+        the largest and smallest projected coordinate falls as the pan grows)."""
+        out = []
+        for pts, k, (lo, hi) in ((self.ac, self.kx, self.pan_range(D)[0]), (self.bc, self.ky, self.pan_range(D)[1])):
+            a, c = pts.T
+            s = 1.0 / (D - c)
+            target = k[0] + k[1]                                  # (x0 + x1) T
+            for _ in range(60):
+                mid = 0.5 * (lo + hi)
+                proj = (a - mid) * s
+                if proj.max() + proj.min() > target:
+                    lo = mid
+                else:
+                    hi = mid
+            out.append(0.5 * (lo + hi))
+        return tuple(out)
+
     @staticmethod
     def merge(extents):
-        out = object.__new__(Extent)
-        out.basis, out.kx, out.ky = extents[0].basis, extents[0].kx, extents[0].ky
-        for name, fn in (("hi_x", max), ("lo_x", min), ("hi_y", max), ("lo_y", min), ("near", max)):
-            setattr(out, name, fn(getattr(e, name) for e in extents))
-        return out
+        e0 = extents[0]
+        hulls = tuple(_hull(np.concatenate([getattr(e, name) for e in extents])) for name in ("ac", "bc"))
+        return Extent(None, e0.basis, e0.size, e0.window, _hulls=hulls)
 
 
 def _camera(basis, u, v, D):
@@ -91,8 +129,7 @@ def fit_cameras(extents):
     """One camera holding the points of every extent (the same for every frame)."""
     ext = Extent.merge(extents)
     D = ext.distance
-    (ul, uh), (vl, vh) = ext.pan_range(D)
-    return [_camera(ext.basis, 0.5 * (ul + uh), 0.5 * (vl + vh), D)] * len(extents)
+    return [_camera(ext.basis, *ext.centred_pan(D), D)] * len(extents)
 
 
 def follow_cameras(extents, smooth=5.0):
@@ -109,7 +146,7 @@ def follow_cameras(extents, smooth=5.0):
     ranges = [e.pan_range(d) for e, d in zip(extents, D)]
     lo = np.array([[r[0][0], r[1][0]] for r in ranges])
     hi = np.array([[r[0][1], r[1][1]] for r in ranges])
-    pan = 0.5 * (lo + hi)
+    pan = np.array([e.centred_pan(d) for e, d in zip(extents, D)])
     if smooth > 0 and len(D) > 1:
         pan = np.clip(gaussian_filter1d(pan, smooth, axis=0, mode="nearest"), lo, hi)
     return [_camera(e.basis, u, v, d) for e, (u, v), d in zip(extents, pan, D)]
