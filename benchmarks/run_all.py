@@ -27,6 +27,7 @@ SCRIPTS = [
     ("far_field.py", ["--sizes", "4", "8", "16", "--repeat", "1", "--max-seconds", "60", "--budget", "120"]),
     ("gmres_iterations.py", ["--sizes", "2", "8", "--degrees", "8"]),
     ("step_cost.py", ["--p", "6", "--steps", "10"]),
+    ("render_movie.py", ["--frames", "60"]),
 ]
 
 

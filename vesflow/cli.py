@@ -11,7 +11,7 @@ from .errors import NumericalFailure, OptionError, RunError, SceneError, Vesflow
 
 USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc and -ves_ options ...]
        vesflow check SCENE.toml [-ves_ and PETSc options]
-       vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none]
+       vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none] [--camera follow|fit|fixed]
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
        vesflow run -help          every vesflow option with its default"""
 
