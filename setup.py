@@ -6,6 +6,7 @@ from Cython.Build import cythonize
 KERNELS = [
     "stokes",      # direct Stokeslet / stresslet sums, source -> target (far field, near/self smooth rules)
     "search",      # cell-list near-pair search
+    "ewald",       # real-space part of the spectral Ewald sums (cell lists)
 ]
 
 compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2"]  # no -ffast-math: singular quadrature needs exact cancellation

@@ -1,0 +1,414 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/far_field.md, "Ewald").
+
+With ``r = x - y`` (target minus source), ``z = xi r``, ``e = exp(-z^2)`` and the kernels of
+method reference section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
+(``G = I/r + r r^T/r^3``, ``T_ijl = -6 r_i r_j r_l / r^5``), the Hasimoto split
+``G = G^R + G^F``, ``T = T^R + T^F`` has the real-space parts (Hasimoto 1959; Lindbo and
+Tornberg 2010, eq. 2.5; af Klinteberg and Tornberg 2014 for the stresslet)::
+
+    G^R = (erfc(z)/r - 2 xi e/sqrt(pi)) I + (erfc(z)/r + 2 xi e/sqrt(pi)) r r^T / r^2
+    T^R = A (delta_ij r_l + delta_jl r_i + delta_il r_j) + B r_i r_j r_l
+          A = 4 xi^3 e / sqrt(pi)
+          B = -2 (3 erfc(z)/r^5 + (6 xi / r^4 + 4 xi^3 / r^2) e / sqrt(pi))
+
+and the smooth parts ``G^F = G - G^R``, ``T^F = T - T^R`` (needed at short range for the
+excluded own-vesicle pairs, below)::
+
+    G^F = (erf(z)/r + 2 xi e/sqrt(pi)) I + a r r^T,       a = (erf(z)/r - 2 xi e/sqrt(pi)) / r^2
+    T^F = -A (delta r + ...) + b r r r,                   b = -6 erf(z)/r^5 - (B + 6 erfc(z)/r^5)
+
+``a`` and ``b`` cancel catastrophically for small ``z``; below ``z = SERIES_Z`` they are
+evaluated from their Taylor series (``a = (2 xi^3/sqrt(pi)) sum_{n>=1} (-1)^(n+1) 2n/(2n+1)
+z^(2n-2)/n!``, ``b = -(16 xi^5/sqrt(pi)) sum_{m>=2} (-1)^m m(m-1)/((2m+1) m!) z^(2m-4)``).
+``G^F(0) = 4 xi / sqrt(pi) I``, ``T^F(0) = 0``.
+
+:func:`real_space` sums, for every target ``t``, over all sources ``s`` and periodic images
+``n`` (periodic) or the sources (free space), LEAVING OUT the sources of the target's own
+vesicle at their given (unwrapped) position::
+
+    sum_{(s, n) != (own, 0), |r| < rc} G^R(r) f_s  -  sum_{s own} G^F_rc(x_t - y_s) f_s
+
+with ``G^F_rc = G^F`` for ``|r| < rc`` and ``G`` beyond (and the same for ``T``), so that the
+Fourier part over ALL sources plus this gives the Ewald sum without the own vesicle.  A
+coincident pair (``r = 0``) of different vesicles is skipped like the direct sum skips it,
+i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image,
+``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc, counting
+sort) and an OpenMP ``prange`` over targets; every output row ACCUMULATES (``out += ...``).
+"""
+import numpy as np
+
+from cython.parallel cimport prange
+from libc.math cimport sqrt, exp, erf, erfc, floor, nearbyint, M_PI
+cimport openmp
+
+cdef double INV8PI = 1.0 / (8.0 * M_PI)
+cdef double SQPI = 1.7724538509055160273          # sqrt(pi)
+SERIES_Z = 0.2
+cdef double _SERIES_Z = 0.2
+
+
+cdef inline void _gr(double r0, double r1, double r2, double rr, double xi,
+                     const double* f, double* a) noexcept nogil:
+    """a[0:3] += G^R(r) f (r != 0)."""
+    cdef double r = sqrt(rr), ri = 1.0 / r
+    cdef double e = exp(-xi * xi * rr), ec = erfc(xi * r) * ri
+    cdef double ci = ec - 2.0 * xi * e / SQPI
+    cdef double cr = (ec + 2.0 * xi * e / SQPI) * ri * ri * (r0 * f[0] + r1 * f[1] + r2 * f[2])
+    a[0] += ci * f[0] + cr * r0
+    a[1] += ci * f[1] + cr * r1
+    a[2] += ci * f[2] + cr * r2
+
+
+cdef inline void _tr(double r0, double r1, double r2, double rr, double xi,
+                     const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] += T^R(r):(g nw) (r != 0)."""
+    cdef double r = sqrt(rr), ri = 1.0 / r, ri2 = ri * ri
+    cdef double e = exp(-xi * xi * rr) / SQPI
+    cdef double A = 4.0 * xi * xi * xi * e
+    cdef double B = -2.0 * (3.0 * erfc(xi * r) * ri2 * ri2 * ri + (6.0 * xi * ri2 * ri2 + 4.0 * xi * xi * xi * ri2) * e)
+    cdef double rn = r0 * nw[0] + r1 * nw[1] + r2 * nw[2]
+    cdef double rg = r0 * g[0] + r1 * g[1] + r2 * g[2]
+    cdef double gn = g[0] * nw[0] + g[1] * nw[1] + g[2] * nw[2]
+    cdef double c = A * gn + B * rn * rg
+    a[0] += A * (g[0] * rn + nw[0] * rg) + c * r0
+    a[1] += A * (g[1] * rn + nw[1] * rg) + c * r1
+    a[2] += A * (g[2] * rn + nw[2] * rg) + c * r2
+
+
+cdef inline void _gf_minus(double r0, double r1, double r2, double rr, double xi,
+                           const double* f, double* a) noexcept nogil:
+    """a[0:3] -= G^F(r) f (any r, also 0)."""
+    cdef double r = sqrt(rr), z = xi * r, z2 = z * z, e = exp(-z2)
+    cdef double ci, ca, t, s
+    cdef int n
+    if z < _SERIES_Z:
+        # erf(z)/r = (2 xi/sqrt(pi)) sum (-1)^n z^2n / (n! (2n+1));  a by its series
+        s = 0.0
+        t = 1.0
+        for n in range(0, 12):
+            s += t / (2 * n + 1)
+            t *= -z2 / (n + 1)
+        ci = 2.0 * xi / SQPI * s + 2.0 * xi * e / SQPI
+        s = 0.0
+        t = 1.0                    # (-1)^(n+1) z^(2n-2) / n!, n = 1
+        for n in range(1, 13):
+            s += t * (2.0 * n) / (2 * n + 1)
+            t *= -z2 / (n + 1)
+        ca = 2.0 * xi * xi * xi / SQPI * s
+    else:
+        ci = erf(z) / r + 2.0 * xi * e / SQPI
+        ca = (erf(z) / r - 2.0 * xi * e / SQPI) / rr
+    t = ca * (r0 * f[0] + r1 * f[1] + r2 * f[2])
+    a[0] -= ci * f[0] + t * r0
+    a[1] -= ci * f[1] + t * r1
+    a[2] -= ci * f[2] + t * r2
+
+
+cdef inline void _tf_minus(double r0, double r1, double r2, double rr, double xi,
+                           const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= T^F(r):(g nw) (any r; 0 at r = 0)."""
+    if rr == 0.0:
+        return
+    cdef double r = sqrt(rr), z = xi * r, z2 = z * z, e = exp(-z2) / SQPI
+    cdef double xi3 = xi * xi * xi, A = 4.0 * xi3 * e, b, s, t, ri2
+    cdef int m
+    if z < _SERIES_Z:
+        s = 0.0
+        t = 0.5                    # (-1)^m z^(2m-4) / m!, m = 2
+        for m in range(2, 14):
+            s += t * m * (m - 1) / (2.0 * m + 1)
+            t *= -z2 / (m + 1)
+        b = -16.0 * xi3 * xi * xi / SQPI * s
+    else:
+        ri2 = 1.0 / rr
+        b = -6.0 * erf(z) * ri2 * ri2 / r + (12.0 * xi * ri2 * ri2 + 8.0 * xi3 * ri2) * e
+    cdef double rn = r0 * nw[0] + r1 * nw[1] + r2 * nw[2]
+    cdef double rg = r0 * g[0] + r1 * g[1] + r2 * g[2]
+    cdef double gn = g[0] * nw[0] + g[1] * nw[1] + g[2] * nw[2]
+    cdef double c = -A * gn + b * rn * rg
+    a[0] -= -A * (g[0] * rn + nw[0] * rg) + c * r0
+    a[1] -= -A * (g[1] * rn + nw[1] * rg) + c * r1
+    a[2] -= -A * (g[2] * rn + nw[2] * rg) + c * r2
+
+
+cdef inline void _g_minus(double r0, double r1, double r2, double rr,
+                          const double* f, double* a) noexcept nogil:
+    """a[0:3] -= G(r) f (r != 0)."""
+    cdef double ri = 1.0 / sqrt(rr)
+    cdef double t = (r0 * f[0] + r1 * f[1] + r2 * f[2]) * ri * ri * ri
+    a[0] -= f[0] * ri + t * r0
+    a[1] -= f[1] * ri + t * r1
+    a[2] -= f[2] * ri + t * r2
+
+
+cdef inline void _t_minus(double r0, double r1, double r2, double rr,
+                          const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= T(r):(g nw) = +6 (r.nw)(r.g) r / r^5 (r != 0)."""
+    cdef double ri = 1.0 / sqrt(rr), ri2 = ri * ri
+    cdef double c = 6.0 * (r0 * nw[0] + r1 * nw[1] + r2 * nw[2]) * (r0 * g[0] + r1 * g[1] + r2 * g[2]) * ri2 * ri2 * ri
+    a[0] += c * r0
+    a[1] += c * r1
+    a[2] += c * r2
+
+
+ctypedef struct _Box:
+    long n[3]
+    double L[3]
+    bint periodic
+    double rc2
+    double xi
+    const double* ys          # wrapped source positions in cell order
+    const long* sidx          # original (id-sorted) index of each cell-ordered source
+    const long* cstart        # cell c holds ys[cstart[c] .. cstart[c+1]]
+    const double* src         # given (unwrapped) positions, id-sorted
+    const long* src_id
+    const long* src_off
+    const double* f
+    const double* nw
+    const double* g
+
+
+cdef inline void _range(const _Box* b, long c, long k, long* lo, long* hi) noexcept nogil:
+    """Neighbour cells of cell c along an axis with k cells: periodic with >= 3 cells c-1..c+1
+    (wrapped later); fewer cells: each cell once; free space: c-1..c+1 clipped."""
+    if b.periodic and k < 3:
+        lo[0] = 0
+        hi[0] = k - 1
+    elif b.periodic:
+        lo[0] = c - 1
+        hi[0] = c + 1
+    else:
+        lo[0] = c - 1 if c > 0 else 0
+        hi[0] = c + 1 if c + 1 < k else k - 1
+
+
+cdef void _target(const _Box* b, const double* x, const double* xw, const long* tc,
+                  long tid, long tv, double* out) noexcept nogil:
+    """out[0:3] += real-space sum at one target (x given, xw wrapped, tc its cell)."""
+    cdef double a[3]
+    cdef long lo[3]
+    cdef long hi[3]
+    cdef long d0, d1, d2, e0, e1, e2, cell
+    cdef Py_ssize_t j, s
+    cdef double r0, r1, r2, rr, q0, q1, q2
+    cdef double gf0 = 4.0 * b.xi / SQPI
+    cdef bint do_sl = b.f != NULL, do_dl = b.g != NULL
+    a[0] = 0.0
+    a[1] = 0.0
+    a[2] = 0.0
+    for j in range(3):
+        _range(b, tc[j], b.n[j], &lo[j], &hi[j])
+    for d0 in range(lo[0], hi[0] + 1):
+        e0 = (d0 + b.n[0]) % b.n[0]
+        for d1 in range(lo[1], hi[1] + 1):
+            e1 = (d1 + b.n[1]) % b.n[1]
+            for d2 in range(lo[2], hi[2] + 1):
+                e2 = (d2 + b.n[2]) % b.n[2]
+                cell = (e0 * b.n[1] + e1) * b.n[2] + e2
+                for j in range(b.cstart[cell], b.cstart[cell + 1]):
+                    r0 = xw[0] - b.ys[3 * j]
+                    r1 = xw[1] - b.ys[3 * j + 1]
+                    r2 = xw[2] - b.ys[3 * j + 2]
+                    if b.periodic:
+                        r0 = r0 - b.L[0] * nearbyint(r0 / b.L[0])
+                        r1 = r1 - b.L[1] * nearbyint(r1 / b.L[1])
+                        r2 = r2 - b.L[2] * nearbyint(r2 / b.L[2])
+                    rr = r0 * r0 + r1 * r1 + r2 * r2
+                    if rr >= b.rc2:
+                        continue
+                    s = b.sidx[j]
+                    if tv >= 0 and b.src_id[s] == tid:
+                        # own vesicle at its given position: done in the own loop below
+                        q0 = x[0] - b.src[3 * s]
+                        q1 = x[1] - b.src[3 * s + 1]
+                        q2 = x[2] - b.src[3 * s + 2]
+                        if q0 * q0 + q1 * q1 + q2 * q2 < b.rc2:
+                            continue
+                    if rr == 0.0:
+                        if do_sl:
+                            a[0] -= gf0 * b.f[3 * s]
+                            a[1] -= gf0 * b.f[3 * s + 1]
+                            a[2] -= gf0 * b.f[3 * s + 2]
+                        continue
+                    if do_sl:
+                        _gr(r0, r1, r2, rr, b.xi, b.f + 3 * s, a)
+                    if do_dl:
+                        _tr(r0, r1, r2, rr, b.xi, b.nw + 3 * s, b.g + 3 * s, a)
+    # own vesicle at its given position: -G^F (|r| < rc) or -G (beyond)
+    if tv >= 0:
+        for s in range(b.src_off[tv], b.src_off[tv + 1]):
+            q0 = x[0] - b.src[3 * s]
+            q1 = x[1] - b.src[3 * s + 1]
+            q2 = x[2] - b.src[3 * s + 2]
+            rr = q0 * q0 + q1 * q1 + q2 * q2
+            if rr < b.rc2:
+                if do_sl:
+                    _gf_minus(q0, q1, q2, rr, b.xi, b.f + 3 * s, a)
+                if do_dl:
+                    _tf_minus(q0, q1, q2, rr, b.xi, b.nw + 3 * s, b.g + 3 * s, a)
+            else:
+                if do_sl:
+                    _g_minus(q0, q1, q2, rr, b.f + 3 * s, a)
+                if do_dl:
+                    _t_minus(q0, q1, q2, rr, b.nw + 3 * s, b.g + 3 * s, a)
+    out[0] += a[0] * INV8PI
+    out[1] += a[1] * INV8PI
+    out[2] += a[2] * INV8PI
+
+
+def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
+                const double[:, ::1] g, double xi):
+    """``G^F(r_k) f_k / (8 pi) + T^F(r_k):(g_k nw_k) / (8 pi)`` for each row k, (n, 3) (tests)."""
+    cdef Py_ssize_t k, n = r.shape[0]
+    out = np.zeros((n, 3))
+    cdef double[:, ::1] o = out
+    cdef double a[3]
+    for k in range(n):
+        a[0] = 0.0; a[1] = 0.0; a[2] = 0.0
+        rr = r[k, 0] ** 2 + r[k, 1] ** 2 + r[k, 2] ** 2
+        _gf_minus(r[k, 0], r[k, 1], r[k, 2], rr, xi, &f[k, 0], a)
+        _tf_minus(r[k, 0], r[k, 1], r[k, 2], rr, xi, &nw[k, 0], &g[k, 0], a)
+        o[k, 0] = -a[0] * INV8PI; o[k, 1] = -a[1] * INV8PI; o[k, 2] = -a[2] * INV8PI
+    return out
+
+
+def real_space(const double[:, ::1] src, const double[:, ::1] f, const double[:, ::1] nw,
+               const double[:, ::1] g, const long[::1] src_id, const long[::1] src_off,
+               const double[:, ::1] trg, const long[::1] trg_id, const long[::1] trg_vi,
+               double xi, double rc, lo, length, bint periodic, double[:, ::1] out):
+    """out[t] += real-space Ewald sum at target t (module docstring), 1/(8 pi) included.
+
+    src (S, 3) SORTED by vesicle id, vesicle v's sources ``src_off[v] .. src_off[v+1]``;
+    f (S, 3) or (0, 3): single-layer density times weight; nw, g (S, 3) or (0, 3): double
+    layer; trg (T, 3), trg_id (T,), trg_vi (T,): index v of the target's own vesicle or -1.
+    lo, length (3,): the box (periodic: the period cell; free: a box holding every point).
+    """
+    cdef Py_ssize_t ns = src.shape[0], nt = trg.shape[0], i
+    cdef bint do_sl = f.shape[0] > 0, do_dl = g.shape[0] > 0
+    if do_sl and f.shape[0] != ns:
+        raise ValueError(f"f has {f.shape[0]} rows, src has {ns}")
+    if do_dl and (g.shape[0] != ns or nw.shape[0] != ns):
+        raise ValueError(f"nw, g have {nw.shape[0]}, {g.shape[0]} rows, src has {ns}")
+    if trg_id.shape[0] != nt or trg_vi.shape[0] != nt or out.shape[0] != nt:
+        raise ValueError("trg, trg_id, trg_vi and out must have the same length")
+    if src_id.shape[0] != ns:
+        raise ValueError("src and src_id must have the same length")
+    if nt == 0 or ns == 0 or not (do_sl or do_dl):
+        return
+    if not (rc > 0.0 and xi > 0.0):
+        raise ValueError(f"rc and xi must be positive, got {rc}, {xi}")
+    lo_np = np.asarray(lo, dtype=np.float64).reshape(3)
+    len_np = np.asarray(length, dtype=np.float64).reshape(3)
+    # cells: side >= rc, at most ~4 S + 64 of them
+    ncell_np = np.maximum(1, np.floor(len_np / rc)).astype(np.int64)
+    while np.prod(ncell_np) > 4 * ns + 64:
+        j = int(np.argmax(ncell_np))
+        ncell_np[j] = max(1, ncell_np[j] // 2)
+    side_np = np.where(len_np > 0, len_np / ncell_np, 1.0)
+    src_np = np.asarray(src)
+    trg_np = np.asarray(trg)
+    if periodic:
+        if np.any(rc >= 0.5 * len_np):
+            raise ValueError(f"periodic real-space cutoff rc = {rc} must be below half the period {len_np}")
+        sw = lo_np + np.mod(src_np - lo_np, len_np)
+        tw = lo_np + np.mod(trg_np - lo_np, len_np)
+    else:
+        sw = src_np
+        tw = trg_np
+    scell = np.clip(np.floor((sw - lo_np) / side_np).astype(np.int64), 0, ncell_np - 1)
+    tcell = np.clip(np.floor((tw - lo_np) / side_np).astype(np.int64), 0, ncell_np - 1)
+    skey = (scell[:, 0] * ncell_np[1] + scell[:, 1]) * ncell_np[2] + scell[:, 2]
+    order = np.argsort(skey, kind="stable")
+    ncells = int(np.prod(ncell_np))
+    cstart_np = np.zeros(ncells + 1, dtype=np.int64)
+    cstart_np[1:] = np.cumsum(np.bincount(skey, minlength=ncells))
+    cdef double[:, ::1] ys = np.ascontiguousarray(sw[order])                 # wrapped, cell order
+    cdef long[::1] sidx = np.ascontiguousarray(order, dtype=np.int64)
+    cdef double[:, ::1] xw = np.ascontiguousarray(tw)
+    cdef long[:, ::1] tc = np.ascontiguousarray(tcell)
+    cdef long[::1] cstart = cstart_np
+    cdef Py_ssize_t t
+    cdef _Box box
+    box.n[0] = ncell_np[0]; box.n[1] = ncell_np[1]; box.n[2] = ncell_np[2]
+    box.L[0] = len_np[0]; box.L[1] = len_np[1]; box.L[2] = len_np[2]
+    box.periodic = periodic
+    box.rc2 = rc * rc
+    box.xi = xi
+    box.ys = &ys[0, 0]
+    box.sidx = &sidx[0]
+    box.cstart = &cstart[0]
+    box.src = &src[0, 0]
+    box.src_id = &src_id[0]
+    box.src_off = &src_off[0]
+    box.f = &f[0, 0] if do_sl else NULL
+    box.nw = &nw[0, 0] if do_dl else NULL
+    box.g = &g[0, 0] if do_dl else NULL
+    cdef const double* ptrg = &trg[0, 0]
+    cdef const double* pxw = &xw[0, 0]
+    cdef const long* ptc = &tc[0, 0]
+    cdef double* po = &out[0, 0]
+    with nogil:
+        for t in prange(nt, schedule="dynamic", chunksize=64):
+            _target(&box, ptrg + 3 * t, pxw + 3 * t, ptc + 3 * t, trg_id[t], trg_vi[t], po + 3 * t)
+
+
+def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] psi,
+                 const double[::1] k0, const double[::1] k1, const double[::1] k2,
+                 bint single, bint double, double scale, double complex[:, :, :, ::1] U):
+    """Fourier-space multiplication of the Ewald sum (vesflow/layerpot/ewald.py), one pass:
+
+        U_a = scale Psi [ (k^2 F_a - k_a (k.F)) + i (k^2 (2 (S k)_a + k_a tr S) - 2 k_a (k.S k)) ]
+
+    F: (m, n0, n1, n2), the single-layer transforms F_0..2 first (if ``single``), then the
+    six components (00, 11, 22, 01, 02, 12) of S (if ``double``); U (3, n0, n1, n2) is
+    OVERWRITTEN.  OpenMP over the first axis.
+    """
+    cdef Py_ssize_t n0 = psi.shape[0], n1 = psi.shape[1], n2 = psi.shape[2]
+    cdef Py_ssize_t i, j, l, o = 3 if single else 0
+    if U.shape[0] != 3 or U.shape[1] != n0 or U.shape[2] != n1 or U.shape[3] != n2:
+        raise ValueError("U must have shape (3,) + psi.shape")
+    if F.shape[0] < o + (6 if double else 0) or F.shape[1] != n0 or F.shape[2] != n1 or F.shape[3] != n2:
+        raise ValueError("F has the wrong shape")
+    if k0.shape[0] != n0 or k1.shape[0] != n1 or k2.shape[0] != n2:
+        raise ValueError("k vectors do not match psi")
+    cdef double a, b, c, kk, ps
+    cdef double complex f0, f1, f2, kf, s00, s11, s22, s01, s02, s12, q0, q1, q2, tr, ksk, u0, u1, u2
+    with nogil:
+        for i in prange(n0, schedule="static"):
+            for j in range(n1):
+                for l in range(n2):
+                    a = k0[i]
+                    b = k1[j]
+                    c = k2[l]
+                    kk = a * a + b * b + c * c
+                    ps = psi[i, j, l] * scale
+                    u0 = 0
+                    u1 = 0
+                    u2 = 0
+                    if single:
+                        f0 = F[0, i, j, l]
+                        f1 = F[1, i, j, l]
+                        f2 = F[2, i, j, l]
+                        kf = a * f0 + b * f1 + c * f2
+                        u0 = kk * f0 - a * kf
+                        u1 = kk * f1 - b * kf
+                        u2 = kk * f2 - c * kf
+                    if double:
+                        s00 = F[o, i, j, l]
+                        s11 = F[o + 1, i, j, l]
+                        s22 = F[o + 2, i, j, l]
+                        s01 = F[o + 3, i, j, l]
+                        s02 = F[o + 4, i, j, l]
+                        s12 = F[o + 5, i, j, l]
+                        q0 = s00 * a + s01 * b + s02 * c
+                        q1 = s01 * a + s11 * b + s12 * c
+                        q2 = s02 * a + s12 * b + s22 * c
+                        tr = s00 + s11 + s22
+                        ksk = a * q0 + b * q1 + c * q2
+                        u0 = u0 + 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
+                        u1 = u1 + 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
+                        u2 = u2 + 1j * (kk * (2.0 * q2 + c * tr) - 2.0 * c * ksk)
+                    U[0, i, j, l] = u0 * ps
+                    U[1, i, j, l] = u1 * ps
+                    U[2, i, j, l] = u2 * ps
