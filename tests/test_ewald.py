@@ -10,7 +10,7 @@ from scipy.special import erfc
 
 from vesflow._kernels import ewald as ek
 from vesflow._kernels import stokes
-from vesflow import shapes
+from vesflow import shapes, sph
 from vesflow.layerpot import ewald
 from vesflow.surface import Surface
 
@@ -272,3 +272,34 @@ def test_free_space_ewald_matches_the_direct_sum_vesicle_surfaces(rng, tol):
     es = ewald.EwaldSum(src, sid, trg, tid, tol=tol, double_layer=True)
     err = rel_err(es.evaluate(f_w, nw, g), ref)
     assert err < tol, (err, es.params)
+
+
+# ------------------------------------------------------------------ FarField backend
+def test_farfield_ewald_backend_matches_direct_in_the_layer_potentials(rng):
+    """-ves_far ewald through LayerPotentials (far sum + near and self corrections) agrees with
+    the direct backend to the far-field tolerance, both layers (viscosity contrast)."""
+    from vesflow.layerpot.evaluator import LayerPotentials, Settings
+    p = 6
+    centres = [(0, 0, 0), (2.2, 0.3, 0), (0.1, 2.3, 0.2), (2.0, 2.1, 1.2)]
+    S = Surface(np.stack([shapes.make_shape("oblate", p, center=c, rotation=tuple(rng.uniform(0, 3, 3)))
+                          for c in centres]), p)
+    f, g = rng.standard_normal((2, len(centres), 3, sph.n_coeffs(p)))
+    out = {}
+    for backend in ("direct", "ewald"):
+        lp = LayerPotentials(S, lam=0.4, settings=Settings(backend=backend, fmm_eps=1e-9))
+        assert lp.far.backend == backend
+        out[backend] = lp.apply(f, g)
+    assert rel_err(out["ewald"], out["direct"]) < 1e-9
+
+
+def test_auto_takes_the_predicted_fastest_backend():
+    from vesflow.layerpot import far
+    assert far.choose_backend(1000, 1000, "auto", 1e-8, t_ewald=1e-9) == "ewald"
+    assert far.choose_backend(1000, 1000, "auto", 1e-8, t_ewald=1e3) == "direct"
+    assert far.choose_backend(1000, 1000, "auto", 1e-8, t_ewald=1e3, periodic=True) == "ewald"
+    with pytest.raises(Exception, match="periodic"):
+        far.choose_backend(1000, 1000, "direct", periodic=True)
+    # a small free-space problem: the model predicts the direct sum faster, and FarField follows
+    src = np.random.default_rng(0).uniform(0, 1, (200, 3))
+    ff = far.FarField(src, np.arange(200) // 20, src, np.arange(200) // 20, backend="auto")
+    assert ff.backend == "direct"

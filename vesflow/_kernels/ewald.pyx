@@ -33,7 +33,7 @@ with ``G^F_rc = G^F`` for ``|r| < rc`` and ``G`` beyond (and the same for ``T``)
 Fourier part over ALL sources plus this gives the Ewald sum without the own vesicle.  A
 coincident pair (``r = 0``) of different vesicles is skipped like the direct sum skips it,
 i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image,
-``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc, counting
+``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, counting
 sort) and an OpenMP ``prange`` over targets; every output row ACCUMULATES (``out += ...``).
 """
 import numpy as np
@@ -46,6 +46,9 @@ cdef double INV8PI = 1.0 / (8.0 * M_PI)
 cdef double SQPI = 1.7724538509055160273          # sqrt(pi)
 SERIES_Z = 0.2
 cdef double _SERIES_Z = 0.2
+# cells of side >= rc / SUB, (2 SUB + 1)^3 neighbour cells: 2 visits (2.5 rc)^3 instead of
+# (3 rc)^3 for a sphere of (4/3) pi rc^3
+cdef long SUB = 2
 
 
 cdef inline void _gr(double r0, double r1, double r2, double rr, double xi,
@@ -170,17 +173,18 @@ ctypedef struct _Box:
 
 
 cdef inline void _range(const _Box* b, long c, long k, long* lo, long* hi) noexcept nogil:
-    """Neighbour cells of cell c along an axis with k cells: periodic with >= 3 cells c-1..c+1
-    (wrapped later); fewer cells: each cell once; free space: c-1..c+1 clipped."""
-    if b.periodic and k < 3:
+    """Neighbour cells of cell c along an axis with k cells (cells of side >= rc / SUB):
+    periodic with >= 2 SUB + 1 cells c-SUB..c+SUB (wrapped later); fewer cells: each cell
+    once; free space: c-SUB..c+SUB clipped."""
+    if b.periodic and k < 2 * SUB + 1:
         lo[0] = 0
         hi[0] = k - 1
     elif b.periodic:
-        lo[0] = c - 1
-        hi[0] = c + 1
+        lo[0] = c - SUB
+        hi[0] = c + SUB
     else:
-        lo[0] = c - 1 if c > 0 else 0
-        hi[0] = c + 1 if c + 1 < k else k - 1
+        lo[0] = c - SUB if c >= SUB else 0
+        hi[0] = c + SUB if c + SUB < k else k - 1
 
 
 cdef void _target(const _Box* b, const double* x, const double* xw, const long* tc,
@@ -300,8 +304,8 @@ def real_space(const double[:, ::1] src, const double[:, ::1] f, const double[:,
         raise ValueError(f"rc and xi must be positive, got {rc}, {xi}")
     lo_np = np.asarray(lo, dtype=np.float64).reshape(3)
     len_np = np.asarray(length, dtype=np.float64).reshape(3)
-    # cells: side >= rc, at most ~4 S + 64 of them
-    ncell_np = np.maximum(1, np.floor(len_np / rc)).astype(np.int64)
+    # cells: side >= rc / SUB, at most ~4 S + 64 of them
+    ncell_np = np.maximum(1, np.floor(len_np / (rc / SUB))).astype(np.int64)
     while np.prod(ncell_np) > 4 * ns + 64:
         j = int(np.argmax(ncell_np))
         ncell_np[j] = max(1, ncell_np[j] // 2)
@@ -360,18 +364,22 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
 
         U_a = scale Psi [ (k^2 F_a - k_a (k.F)) + i (k^2 (2 (S k)_a + k_a tr S) - 2 k_a (k.S k)) ]
 
+    psi: (n0/2 + 1, n1/2 + 1, n2/2 + 1), Psi at |k| (Psi is even in each component of k);
+    k0, k1, k2: the wave numbers of the modes (-n/2 .. n/2 - 1, times 2 pi / period).
     F: (m, n0, n1, n2), the single-layer transforms F_0..2 first (if ``single``), then the
-    six components (00, 11, 22, 01, 02, 12) of S (if ``double``); U (3, n0, n1, n2) is
-    OVERWRITTEN.  OpenMP over the first axis.
+    six components (00, 11, 22, 01, 02, 12) of S (if ``double``); U (3 or more, n0, n1, n2)
+    gets the result in its first 3 components; it may be F itself (every mode is read before
+    it is written).  OpenMP over the first axis.
     """
-    cdef Py_ssize_t n0 = psi.shape[0], n1 = psi.shape[1], n2 = psi.shape[2]
+    cdef Py_ssize_t n0 = k0.shape[0], n1 = k1.shape[0], n2 = k2.shape[0]
     cdef Py_ssize_t i, j, l, o = 3 if single else 0
-    if U.shape[0] != 3 or U.shape[1] != n0 or U.shape[2] != n1 or U.shape[3] != n2:
+    cdef Py_ssize_t h0 = n0 // 2, h1 = n1 // 2, h2 = n2 // 2
+    if n0 % 2 or n1 % 2 or n2 % 2 or psi.shape[0] != h0 + 1 or psi.shape[1] != h1 + 1 or psi.shape[2] != h2 + 1:
+        raise ValueError("even mode counts and psi of shape (n/2 + 1) per axis required")
+    if U.shape[0] < 3 or U.shape[1] != n0 or U.shape[2] != n1 or U.shape[3] != n2:
         raise ValueError("U must have shape (3,) + psi.shape")
     if F.shape[0] < o + (6 if double else 0) or F.shape[1] != n0 or F.shape[2] != n1 or F.shape[3] != n2:
         raise ValueError("F has the wrong shape")
-    if k0.shape[0] != n0 or k1.shape[0] != n1 or k2.shape[0] != n2:
-        raise ValueError("k vectors do not match psi")
     cdef double a, b, c, kk, ps
     cdef double complex f0, f1, f2, kf, s00, s11, s22, s01, s02, s12, q0, q1, q2, tr, ksk, u0, u1, u2
     with nogil:
@@ -382,7 +390,8 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
                     b = k1[j]
                     c = k2[l]
                     kk = a * a + b * b + c * c
-                    ps = psi[i, j, l] * scale
+                    ps = psi[i - h0 if i >= h0 else h0 - i, j - h1 if j >= h1 else h1 - j,
+                             l - h2 if l >= h2 else h2 - l] * scale
                     u0 = 0
                     u1 = 0
                     u2 = 0

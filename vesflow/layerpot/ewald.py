@@ -34,8 +34,8 @@ a padded grid, after Vico, Greengard and Ferrando 2016; here the same idea with 
 window): the differences ``x - y`` of points in a box of sides ``B_a`` lie in ``(-B_a, B_a)``;
 ``phi^F`` times a window ``W`` (1 on that range to the tolerance, 0 beyond ``B_a + w``) is
 periodized with period ``P_a = 2 (B_a + w)`` and ``Psi`` is its discrete Fourier transform on
-the NUFFT grid, computed once per set-up (``-phi^F W / (8 pi)`` sampled, FFT, times the cell
-volume).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, so the periodic sum
+the NUFFT grid, computed once per set-up (``-phi^F W / (8 pi)`` sampled on one octant, a
+type-1 DCT since the function is even, times the grid cell volume; stored for k >= 0 only).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, so the periodic sum
 with this ``Psi`` is the free-space ``u^F`` on the box.
 
 Parameters from the requested accuracy ``tol`` (relative to the largest velocity) by the
@@ -161,7 +161,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
         box = (pts.max(axis=0) - lo) if n else np.zeros(3)
         box = np.maximum(box, 1e-3 * max(float(box.max()), 1e-300))
         rc_hi = max(float(np.linalg.norm(box)), 1e-300)
-    scale = float(np.cbrt(np.prod(box) / max(n, 1)))     # mean point spacing
+    scale = float(np.cbrt(np.prod(box) / max(nsrc + ntrg, 1)))     # mean point spacing
     rc_lo = min(rc_hi, max(0.5 * scale, 1e-3 * rc_hi))
     best = None
     for rc in np.geomspace(rc_lo, rc_hi, 48):
@@ -228,8 +228,9 @@ def _window_1d(x, half, sigma):
 
 
 def kernel_psi(p, threads=1):
-    """``Psi(k)`` on the mode grid (CMCL order, -K/2 .. K/2-1 per axis), real (n1, n2, n3)."""
-    k = _kvectors(p)
+    """``Psi(k)`` for ``k_a = 2 pi m_a / P_a``, ``m_a = 0 .. K_a/2`` (Psi is even in each
+    component of k), real (K_0/2 + 1, K_1/2 + 1, K_2/2 + 1)."""
+    k = [2.0 * math.pi / P * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
     if p.periodic:
         k2 = k[0][:, None, None] ** 2 + k[1][None, :, None] ** 2 + k[2][None, None, :] ** 2
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -238,21 +239,22 @@ def kernel_psi(p, threads=1):
         psi[k2 == 0.0] = 0.0
         return psi
     import scipy.fft
-    x = [P / n * (np.arange(n) - n // 2) for P, n in zip(p.period, p.modes)]
+    # phi^F W sampled at x_j = j P / K, j = 0 .. K/2 per axis (W even; the plane j = K/2,
+    # shared with -K/2, set to 0: W is below tol there); the DFT of the even function on the
+    # full periodic grid is the type-1 DCT of this octant
+    x = [P / n * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
     r = np.sqrt(x[0][:, None, None] ** 2 + x[1][None, :, None] ** 2 + x[2][None, None, :] ** 2)
     phi = phi_smooth(r, p.xi)
     del r
     for a in range(3):
         wa = _window_1d(x[a], p.box[a] + 0.5 * p.w, p.sigma)
-        wa[0] = 0.0                      # the -P/2 plane has no mirror: keep the function even
+        wa[-1] = 0.0
         shape = [1, 1, 1]
         shape[a] = -1
         phi *= wa.reshape(shape)
     cell = float(np.prod([P / n for P, n in zip(p.period, p.modes)]))
-    phi = scipy.fft.ifftshift(phi)
-    spec = scipy.fft.fftn(phi, workers=threads, overwrite_x=True)
-    del phi
-    psi = scipy.fft.fftshift(spec.real) * (-cell / (8.0 * math.pi))
+    psi = scipy.fft.dctn(phi, type=1, workers=threads, overwrite_x=True)
+    psi *= -cell / (8.0 * math.pi)
     return np.ascontiguousarray(psi)
 
 
@@ -402,10 +404,11 @@ class EwaldSum:
             comps.append(_sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
         c = np.ascontiguousarray(np.concatenate(comps, axis=0), dtype=np.complex128)
         F = self._nufft.type1(c)
-        U = np.empty((3,) + tuple(self.params.modes), dtype=np.complex128)
+        del c
+        # in place: each mode's components are read before its three outputs are written
         _kernels.kspace_apply(F, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
-                              1.0 / float(np.prod(self.params.period)), U)
-        del F
+                              1.0 / float(np.prod(self.params.period)), F)
+        U = F[:3]
         return self._nufft.type2(U).real.T.copy()
 
     def evaluate(self, f_w=None, nw=None, g=None):
