@@ -65,7 +65,8 @@ class Run:
         self.p = scene.p
         self.timers = Timers()
         settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"],
-                            backend=_backend(opts["far"]), fmm_eps=opts["far_tol"])
+                            backend=_backend(opts["far"]), fmm_eps=opts["far_tol"],
+                            period=scene.periodic_length or None)
         params = vesicle_params(scene)
         phys = physics(scene)
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
@@ -141,15 +142,15 @@ class Run:
         raw = st.coeffs.copy()
         st.coeffs = self._post_processed(raw, self.opts["reparam"])
         check = self.opts["collision"] and st.surface.n_vesicles > 1
-        if check and collision.contacts(st.surface, self.q_near) > 0:
+        if check and collision.contacts(st.surface, self.q_near, scene_period(self.scene)) > 0:
             touching = True
             if self.opts["reparam"]:
                 st.coeffs = self._post_processed(raw, True, project_its=10)
-                touching = collision.contacts(st.surface, self.q_near) > 0
+                touching = collision.contacts(st.surface, self.q_near, scene_period(self.scene)) > 0
                 self.reparam_iterated += int(not touching)
                 if touching:
                     st.coeffs = self._post_processed(raw, False)
-                    touching = collision.contacts(st.surface, self.q_near) > 0
+                    touching = collision.contacts(st.surface, self.q_near, scene_period(self.scene)) > 0
                     self.reparam_skipped += int(not touching)
             if touching:
                 st.coeffs, st.time, st.last = saved
@@ -305,9 +306,9 @@ class Run:
 
 def check_available(scene, opts):
     """Refuse (exit status 3) what this version cannot run, before any output is created."""
-    if scene.domain is not None:
-        raise NumericalFailure("periodic domains ([domain]) are not available yet: the spectral Ewald "
-                               "far field is a later issue; remove [domain] to run in free space")
+    if scene.domain is not None and opts["far"] not in ("auto", "ewald"):
+        raise NumericalFailure(f"-ves_far {opts['far']}: a periodic domain ([domain]) needs the Ewald far "
+                               "field; use -ves_far ewald or auto")
     _backend(opts["far"])
 
 
@@ -321,6 +322,11 @@ def _step_q(q, err, tol, lo, hi):
 
 def Tgrid(p, c):
     return sph.transform(p).synth(c)
+
+
+def scene_period(scene):
+    """The period of a triply periodic scene, None in free space."""
+    return scene.periodic_length or None
 
 
 def _backend(name):
