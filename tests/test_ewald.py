@@ -354,3 +354,16 @@ def test_spherical_vesicle_in_a_periodic_cube_sediments_at_hasimotos_velocity(ph
     f3 = phi ** (1 / 3)
     expected = 1 - 1.7601 * f3 + phi - 1.5593 * phi ** 2 + 3.9799 * phi ** (8 / 3) - 3.0734 * phi ** (10 / 3)
     assert ratio == pytest.approx(expected, rel=rtol)
+
+
+def test_single_and_double_layer_in_two_passes_when_the_grids_do_not_fit(rng, monkeypatch):
+    src, sid, trg, tid = clusters(rng, 6, 20, 2.0, 0.3, 5)
+    f, nw, g = rng.standard_normal((3, src.shape[0], 3))
+    es = ewald.EwaldSum(src, sid, trg, tid, tol=1e-8, double_layer=True)
+    one = es.evaluate(f, nw, g)
+    calls = []
+    fourier = es.fourier
+    monkeypatch.setattr(es, "fourier", lambda *a, **k: calls.append(1) or fourier(*a, **k))
+    monkeypatch.setattr(ewald, "MAX_GRID_BYTES", 1)
+    two = es.evaluate(f, nw, g)
+    assert len(calls) == 2 and rel_err(two, one) < 1e-13

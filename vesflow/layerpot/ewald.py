@@ -75,8 +75,11 @@ NUFFT_EPS_FACTOR = 0.1
 # fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
 # mode per component
 COST = {"pair": 3.0e-8, "own_pair": 5.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 1.0e-8}
-# largest Fourier grid (modes) a parameter choice may use
-MAX_MODES = 2 ** 27
+# memory of the Fourier grids of one pass (complex, one array per source component): a
+# parameter choice keeps the double layer's pass (6 components) within it; single and double
+# layer share one pass (9 components) when that fits too
+MAX_GRID_BYTES = 4 * 2 ** 30
+MAX_MODES = MAX_GRID_BYTES // (16 * 6)
 
 
 def _have(lib):
@@ -186,7 +189,8 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
             best = (t, p)
     if best is None:
         raise SceneError(f"Ewald sum at -ves_far_tol {tol:g}: every real-space cutoff needs a Fourier "
-                         f"grid above {MAX_MODES} modes; raise -ves_far_tol or use -ves_far direct")
+                         f"grid above {MAX_MODES} modes ({MAX_GRID_BYTES / 2 ** 30:g} GiB); raise -ves_far_tol "
+                         "or use -ves_far direct")
     return best[1]
 
 
@@ -418,7 +422,13 @@ class EwaldSum:
         out = np.zeros((self.trg.shape[0], 3))
         if self.trg.shape[0] == 0 or self.src.shape[0] == 0 or (f_w is None and g is None):
             return out
-        return self.real_space(f_w, nw, g) + self.fourier(f_w, nw, g)
+        out = self.real_space(f_w, nw, g)
+        if f_w is not None and g is not None and 9 * 16 * float(np.prod(self.params.modes)) > MAX_GRID_BYTES:
+            out += self.fourier(f_w=f_w)                 # two passes: the grids of one fit the memory
+            out += self.fourier(nw=nw, g=g)
+        else:
+            out += self.fourier(f_w, nw, g)
+        return out
 
 
 DEFAULT_NUFFT = "ducc0"

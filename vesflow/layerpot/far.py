@@ -184,8 +184,11 @@ class FarField:
         ns, nt = self.src.shape[0], self.trg.shape[0]
         t_ewald, params = None, None
         if backend == "auto" and period is None and ns and nt and _have_ewald():
-            t_ewald, params = predicted_ewald(np.concatenate([self.src, self.trg]), ns, nt,
-                                              _own_pairs(self.src_id, self.trg_id), self.eps)
+            try:
+                t_ewald, params = predicted_ewald(np.concatenate([self.src, self.trg]), ns, nt,
+                                                  _own_pairs(self.src_id, self.trg_id), self.eps)
+            except SceneError:               # no grid fits the memory: not a candidate
+                t_ewald, params = None, None
         self.backend = choose_backend(ns, nt, backend, self.eps, t_ewald, periodic=period is not None)
         self.n_snapped = 0
         self.ewald = None
