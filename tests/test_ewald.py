@@ -170,6 +170,17 @@ def test_smooth_part_is_full_minus_real_and_accurate_at_small_r(rng):
     assert np.allclose(at0, 4 * xi / SQPI * f[:20] / (8 * np.pi), rtol=1e-14, atol=0)
 
 
+@pytest.mark.parametrize("xi, rc", [(2.3, 1.9), (5.0, 1.1), (1.0, 6.0)])
+def test_tabulated_real_space_coefficients(xi, rc):
+    r = np.linspace(1e-9, rc, 20001)
+    z, sq = xi * r, SQPI
+    e, ec = np.exp(-z * z), erfc(z)
+    ref = np.stack([ec - 2 * z * e / sq, ec + 2 * z * e / sq, 4 * xi ** 3 * e / sq,
+                    -2 * (3 * ec + (6 * z + 4 * z ** 3) * e / sq)], 1)
+    err = np.abs(ek.tabulated(xi, rc, r) - ref).max(axis=0) / np.abs(ref).max(axis=0)
+    assert np.all(err < 1e-13), err
+
+
 # ------------------------------------------------------------------ periodic
 def test_classical_reference_is_independent_of_xi(rng):
     L = 1.7

@@ -74,7 +74,7 @@ NUFFT_EPS_FACTOR = 0.1
 # own-vesicle pair; NUFFT spreading per point per transform per kernel width cubed; FFT per
 # fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
 # mode per component
-COST = {"pair": 3.0e-8, "own_pair": 5.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 1.0e-8}
+COST = {"pair": 2.2e-8, "own_pair": 5.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 1.0e-8}
 # memory of the Fourier grids of one pass (complex, one array per source component): a
 # parameter choice keeps the double layer's pass (6 components) within it; single and double
 # layer share one pass (9 components) when that fits too
