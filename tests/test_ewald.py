@@ -181,6 +181,19 @@ def test_tabulated_real_space_coefficients(xi, rc):
     assert np.all(err < 1e-13), err
 
 
+@pytest.mark.parametrize("xi, rc", [(2.3, 1.9), (5.0, 1.1), (1.0, 6.0)])
+def test_tabulated_own_vesicle_smooth_part(rng, xi, rc):
+    """The own-vesicle pairs inside rc use G^F, T^F tabulated in r^2: as the series / closed forms."""
+    n = 5000
+    d = rng.standard_normal((n, 3))
+    r = d / np.linalg.norm(d, axis=1)[:, None] * (rc * rng.uniform(0, 1, n) ** (1 / 3))[:, None]
+    r[:20] *= 1e-9
+    r[20] = 0.0
+    f, nw, g = rng.standard_normal((3, n, 3))
+    ref = ek.smooth_part(r, f, nw, g, xi)
+    assert np.abs(ek.smooth_part_tabulated(r, f, nw, g, xi, rc) - ref).max() < 1e-13 * np.abs(ref).max()
+
+
 # ------------------------------------------------------------------ periodic
 def test_classical_reference_is_independent_of_xi(rng):
     L = 1.7

@@ -149,11 +149,10 @@ cdef inline void _tr_tab(double r0, double r1, double r2, double rr, const doubl
     a[2] += A * (g[2] * rn + nw[2] * rg) + c * r2
 
 
-cdef inline void _gf_minus(double r0, double r1, double r2, double rr, double xi,
-                           const double* f, double* a) noexcept nogil:
-    """a[0:3] -= G^F(r) f (any r, also 0)."""
+cdef inline void _gf_coef(double rr, double xi, double* ci, double* ca) noexcept nogil:
+    """G^F(r) = ci I + ca r r^T (any r, also 0; series below z = SERIES_Z)."""
     cdef double r = sqrt(rr), z = xi * r, z2 = z * z, e = exp(-z2)
-    cdef double ci, ca, t, s
+    cdef double t, s
     cdef int n
     if z < _SERIES_Z:
         # erf(z)/r = (2 xi/sqrt(pi)) sum (-1)^n z^2n / (n! (2n+1));  a by its series
@@ -162,40 +161,48 @@ cdef inline void _gf_minus(double r0, double r1, double r2, double rr, double xi
         for n in range(0, 12):
             s += t / (2 * n + 1)
             t *= -z2 / (n + 1)
-        ci = 2.0 * xi / SQPI * s + 2.0 * xi * e / SQPI
+        ci[0] = 2.0 * xi / SQPI * s + 2.0 * xi * e / SQPI
         s = 0.0
         t = 1.0                    # (-1)^(n+1) z^(2n-2) / n!, n = 1
         for n in range(1, 13):
             s += t * (2.0 * n) / (2 * n + 1)
             t *= -z2 / (n + 1)
-        ca = 2.0 * xi * xi * xi / SQPI * s
+        ca[0] = 2.0 * xi * xi * xi / SQPI * s
     else:
-        ci = erf(z) / r + 2.0 * xi * e / SQPI
-        ca = (erf(z) / r - 2.0 * xi * e / SQPI) / rr
-    t = ca * (r0 * f[0] + r1 * f[1] + r2 * f[2])
-    a[0] -= ci * f[0] + t * r0
-    a[1] -= ci * f[1] + t * r1
-    a[2] -= ci * f[2] + t * r2
+        ci[0] = erf(z) / r + 2.0 * xi * e / SQPI
+        ca[0] = (erf(z) / r - 2.0 * xi * e / SQPI) / rr
 
 
-cdef inline void _tf_minus(double r0, double r1, double r2, double rr, double xi,
-                           const double* nw, const double* g, double* a) noexcept nogil:
-    """a[0:3] -= T^F(r):(g nw) (any r; 0 at r = 0)."""
-    if rr == 0.0:
-        return
+cdef inline void _tf_coef(double rr, double xi, double* A, double* b) noexcept nogil:
+    """T^F(r) = -A (delta r + ...) + b r r r (any r, also 0; series below z = SERIES_Z)."""
     cdef double r = sqrt(rr), z = xi * r, z2 = z * z, e = exp(-z2) / SQPI
-    cdef double xi3 = xi * xi * xi, A = 4.0 * xi3 * e, b, s, t, ri2
+    cdef double xi3 = xi * xi * xi, s, t, ri2
     cdef int m
+    A[0] = 4.0 * xi3 * e
     if z < _SERIES_Z:
         s = 0.0
         t = 0.5                    # (-1)^m z^(2m-4) / m!, m = 2
         for m in range(2, 14):
             s += t * m * (m - 1) / (2.0 * m + 1)
             t *= -z2 / (m + 1)
-        b = -16.0 * xi3 * xi * xi / SQPI * s
+        b[0] = -16.0 * xi3 * xi * xi / SQPI * s
     else:
         ri2 = 1.0 / rr
-        b = -6.0 * erf(z) * ri2 * ri2 / r + (12.0 * xi * ri2 * ri2 + 8.0 * xi3 * ri2) * e
+        b[0] = -6.0 * erf(z) * ri2 * ri2 / r + (12.0 * xi * ri2 * ri2 + 8.0 * xi3 * ri2) * e
+
+
+cdef inline void _gf_apply(double r0, double r1, double r2, double ci, double ca,
+                           const double* f, double* a) noexcept nogil:
+    """a[0:3] -= (ci I + ca r r^T) f."""
+    cdef double t = ca * (r0 * f[0] + r1 * f[1] + r2 * f[2])
+    a[0] -= ci * f[0] + t * r0
+    a[1] -= ci * f[1] + t * r1
+    a[2] -= ci * f[2] + t * r2
+
+
+cdef inline void _tf_apply(double r0, double r1, double r2, double A, double b,
+                           const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= (-A (delta r + ...) + b r r r):(g nw)."""
     cdef double rn = r0 * nw[0] + r1 * nw[1] + r2 * nw[2]
     cdef double rg = r0 * g[0] + r1 * g[1] + r2 * g[2]
     cdef double gn = g[0] * nw[0] + g[1] * nw[1] + g[2] * nw[2]
@@ -203,6 +210,83 @@ cdef inline void _tf_minus(double r0, double r1, double r2, double rr, double xi
     a[0] -= -A * (g[0] * rn + nw[0] * rg) + c * r0
     a[1] -= -A * (g[1] * rn + nw[1] * rg) + c * r1
     a[2] -= -A * (g[2] * rn + nw[2] * rg) + c * r2
+
+
+cdef inline void _gf_minus(double r0, double r1, double r2, double rr, double xi,
+                           const double* f, double* a) noexcept nogil:
+    """a[0:3] -= G^F(r) f (any r, also 0)."""
+    cdef double ci, ca
+    _gf_coef(rr, xi, &ci, &ca)
+    _gf_apply(r0, r1, r2, ci, ca, f, a)
+
+
+cdef inline void _tf_minus(double r0, double r1, double r2, double rr, double xi,
+                           const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= T^F(r):(g nw) (any r; 0 at r = 0)."""
+    cdef double A, b
+    _tf_coef(rr, xi, &A, &b)
+    _tf_apply(r0, r1, r2, A, b, nw, g, a)
+
+
+# the smooth parts of the own-vesicle pairs inside rc, tabulated in s = r^2 (ci, ca, A, b are
+# entire functions of s): TAB2_N Chebyshev pieces of degree TAB_DEG over [0, rc^2]
+DEF TAB2_N = 128
+
+
+def _table_smooth(double xi, double rc):
+    """Coefficients (TAB2_N, 4, TAB_DEG + 1) of ci, ca, A, b as polynomials in t per piece of s."""
+    cheb = np.polynomial.chebyshev
+    nodes = np.cos(np.pi * (np.arange(TAB_DEG + 1) + 0.5) / (TAB_DEG + 1))
+    tab = np.empty((TAB2_N, 4, TAB_DEG + 1))
+    vals = np.empty((4, TAB_DEG + 1))
+    cdef double h = rc * rc / TAB2_N, ci, ca, A, b
+    cdef int k, j
+    for k in range(TAB2_N):
+        for j in range(TAB_DEG + 1):
+            ss = (k + 0.5 * (nodes[j] + 1.0)) * h
+            _gf_coef(ss, xi, &ci, &ca)
+            _tf_coef(ss, xi, &A, &b)
+            vals[0, j], vals[1, j], vals[2, j], vals[3, j] = ci, ca, A, b
+        for j in range(4):
+            tab[k, j] = cheb.cheb2poly(cheb.chebfit(nodes, vals[j], TAB_DEG))
+    return tab
+
+
+cdef inline void _tab2_eval(const double* tab, double tinv, double s, int j0, int j1, double* v) noexcept nogil:
+    """v[j0:j1] = the tabulated smooth-part coefficients at s = r^2 <= rc^2."""
+    cdef double x = s * tinv
+    cdef long k = <long> x
+    cdef int j, d
+    if k >= TAB2_N:
+        k = TAB2_N - 1
+    cdef double t = 2.0 * (x - k) - 1.0, acc
+    cdef const double* c = tab + k * TAB_STRIDE
+    for j in range(j0, j1):
+        acc = c[j * (TAB_DEG + 1) + TAB_DEG]
+        for d in range(TAB_DEG - 1, -1, -1):
+            acc = acc * t + c[j * (TAB_DEG + 1) + d]
+        v[j] = acc
+
+
+def smooth_part_tabulated(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
+                          const double[:, ::1] g, double xi, double rc):
+    """As :func:`smooth_part` from the own-vesicle table (|r| < rc) (tests)."""
+    tab_np = np.ascontiguousarray(_table_smooth(xi, rc))
+    cdef const double[:, :, ::1] tab = tab_np
+    cdef Py_ssize_t k, n = r.shape[0]
+    out = np.zeros((n, 3))
+    cdef double[:, ::1] o = out
+    cdef double a[3]
+    cdef double v[4]
+    cdef double rr
+    for k in range(n):
+        a[0] = 0.0; a[1] = 0.0; a[2] = 0.0
+        rr = r[k, 0] ** 2 + r[k, 1] ** 2 + r[k, 2] ** 2
+        _tab2_eval(&tab[0, 0, 0], TAB2_N / (rc * rc), rr, 0, 4, v)
+        _gf_apply(r[k, 0], r[k, 1], r[k, 2], v[0], v[1], &f[k, 0], a)
+        _tf_apply(r[k, 0], r[k, 1], r[k, 2], v[2], v[3], &nw[k, 0], &g[k, 0], a)
+        o[k, 0] = -a[0] * INV8PI; o[k, 1] = -a[1] * INV8PI; o[k, 2] = -a[2] * INV8PI
+    return out
 
 
 cdef inline void _g_minus(double r0, double r1, double r2, double rr,
@@ -242,6 +326,8 @@ ctypedef struct _Box:
     const double* g
     const double* tab         # tabulated coefficients (_table), tinv = TAB_N / rc
     double tinv
+    const double* tab2        # own-vesicle smooth parts (_table_smooth), tinv2 = TAB2_N / rc^2
+    double tinv2
 
 
 cdef inline void _range(const _Box* b, long c, long k, long* lo, long* hi) noexcept nogil:
@@ -269,6 +355,7 @@ cdef void _target(const _Box* b, const double* x, const double* xw, const long* 
     cdef Py_ssize_t j, s
     cdef double r0, r1, r2, rr, q0, q1, q2
     cdef double gf0 = 4.0 * b.xi / SQPI
+    cdef double v[4]
     cdef bint do_sl = b.f != NULL, do_dl = b.g != NULL
     a[0] = 0.0
     a[1] = 0.0
@@ -319,10 +406,11 @@ cdef void _target(const _Box* b, const double* x, const double* xw, const long* 
             q2 = x[2] - b.src[3 * s + 2]
             rr = q0 * q0 + q1 * q1 + q2 * q2
             if rr < b.rc2:
+                _tab2_eval(b.tab2, b.tinv2, rr, 0 if do_sl else 2, 4 if do_dl else 2, v)
                 if do_sl:
-                    _gf_minus(q0, q1, q2, rr, b.xi, b.f + 3 * s, a)
+                    _gf_apply(q0, q1, q2, v[0], v[1], b.f + 3 * s, a)
                 if do_dl:
-                    _tf_minus(q0, q1, q2, rr, b.xi, b.nw + 3 * s, b.g + 3 * s, a)
+                    _tf_apply(q0, q1, q2, v[2], v[3], b.nw + 3 * s, b.g + 3 * s, a)
             else:
                 if do_sl:
                     _g_minus(q0, q1, q2, rr, b.f + 3 * s, a)
@@ -424,6 +512,10 @@ def real_space(const double[:, ::1] src, const double[:, ::1] f, const double[:,
     cdef const double[:, :, ::1] tab = tab_np
     box.tab = &tab[0, 0, 0]
     box.tinv = TAB_N / rc
+    tab2_np = np.ascontiguousarray(_table_smooth(xi, rc))
+    cdef const double[:, :, ::1] tab2 = tab2_np
+    box.tab2 = &tab2[0, 0, 0]
+    box.tinv2 = TAB2_N / (rc * rc)
     cdef const double* ptrg = &trg[0, 0]
     cdef const double* pxw = &xw[0, 0]
     cdef const long* ptc = &tc[0, 0]
