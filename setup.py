@@ -7,6 +7,7 @@ KERNELS = [
     "stokes",      # direct Stokeslet / stresslet sums, source -> target (far field, near/self smooth rules)
     "search",      # cell-list near-pair search
     "series",      # spherical-harmonic series at arbitrary points (projections)
+    "ewald",       # real-space part of the spectral Ewald sums (cell lists)
 ]
 
 compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2"]  # no -ffast-math: singular quadrature needs exact cancellation

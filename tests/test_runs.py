@@ -20,14 +20,9 @@ SMALL_T = 0.15           # the horizon of runs/small.opts
 
 
 def _scenes():
-    from vesflow.scene import load_scene
     out = []
     for path in sorted(glob.glob(str(RUNS / "*.toml"))):
-        marks = []
-        if load_scene(path).domain is not None:
-            marks.append(pytest.mark.xfail(strict=True, reason="periodic domains need the spectral Ewald far "
-                                           "field (a later issue): vesflow run stops with exit status 3"))
-        out.append(pytest.param(path, marks=marks, id=Path(path).stem))
+        out.append(pytest.param(path, id=Path(path).stem))
     return out
 
 

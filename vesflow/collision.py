@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
-from ._kernels import search
-from .layerpot.near import Projection, near_distance
+from .layerpot.near import Projection, near_distance, near_pairs_images
 
 
-def signed_gaps(surface, q):
-    """Signed distances of every near (point, other vesicle) pair: (pairs (P, 2), distances (P,))."""
+def signed_gaps(surface, q, period=None):
+    """Signed distances of every near (point, other vesicle) pair: (pairs (P, 2), distances (P,)).
+    ``period``: triply periodic box (minimum image, vesflow.layerpot.near.near_pairs_images)."""
     p, N = surface.p, surface.n_vesicles
     Tq = sph.transform(p, q)
     src = np.ascontiguousarray(surface.points(q).reshape(-1, 3))
@@ -21,24 +21,23 @@ def signed_gaps(surface, q):
     trg = np.ascontiguousarray(surface.points().reshape(-1, 3))
     trg_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p).npts)
     h = float(near_distance(surface.area(), q).max())
-    pairs, _ = search.near_pairs(trg, trg_id, src, src_id, h)
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    src_off = np.arange(N + 1, dtype=np.int64) * Tq.npts
+    pairs, tpos = near_pairs_images(trg, trg_id, src, src_id, src_off, h, period)
     if not len(pairs):
         return pairs, np.zeros(0)
     srcv = src.reshape(N, -1, 3)
-    d2 = np.einsum("pmk,pmk->pm", srcv[pairs[:, 1]] - trg[pairs[:, 0]][:, None],
-                   srcv[pairs[:, 1]] - trg[pairs[:, 0]][:, None])
+    d2 = np.einsum("pmk,pmk->pm", srcv[pairs[:, 1]] - tpos[:, None], srcv[pairs[:, 1]] - tpos[:, None])
     it, jp = np.divmod(d2.argmin(axis=1), Tq.nlon)
-    proj = Projection(surface.coeffs, p, trg[pairs[:, 0]], pairs[:, 1], Tq.theta[it], Tq.phi[jp])
+    proj = Projection(surface.coeffs, p, tpos, pairs[:, 1], Tq.theta[it], Tq.phi[jp])
     return pairs, proj.signed_distance
 
 
-def contacts(surface, q):
+def contacts(surface, q, period=None):
     """Number of p-grid points on or behind another vesicle's surface."""
-    _, d = signed_gaps(surface, q)
+    _, d = signed_gaps(surface, q, period)
     return int(np.count_nonzero(d <= 0))
 
 
-def min_gap(surface, q):
-    _, d = signed_gaps(surface, q)
+def min_gap(surface, q, period=None):
+    _, d = signed_gaps(surface, q, period)
     return float(d.min()) if len(d) else np.inf

@@ -118,16 +118,16 @@ def estimate(scene, opts=None, near=True):
     backend, t_far = "none", 0.0
     if N > 1:
         nsrc, ntrg = N * Mq, N * M
-        t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, float(o.get("far_tol") or farmod.DEFAULT_EPS))
+        eps = float(o.get("far_tol") or farmod.DEFAULT_EPS)
+        t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, eps)
         t_direct *= (N - 1) / N                      # a vesicle's own sources are left out
+        t_ewald = _ewald_seconds(scene, p, nsrc, ntrg, N * M * Mq, eps) if farmod._have_ewald() else None
         want = o.get("far", "auto")
         if want == "auto":
-            backend = farmod.choose_backend(nsrc, ntrg, "auto", float(o.get("far_tol") or farmod.DEFAULT_EPS))
+            backend = farmod.choose_backend(nsrc, ntrg, "auto", eps, t_ewald, periodic=bool(eff.periodic))
         else:
             backend = want
-        t_far = t_fmm if backend == "fmm" else t_direct
-        if eff.periodic:
-            backend += ", free space: the periodic sum is not modelled"
+        t_far = {"fmm": t_fmm, "ewald": t_ewald}.get(backend, t_direct) or 0.0
     per_pair = farmod.DIRECT_SECONDS_PER_PAIR / max(1, _threads())
     t_near = max(pairs, 0) * NEAR_EVALS * Mq * per_pair * (2 if dl else 1)
     t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
@@ -136,6 +136,17 @@ def estimate(scene, opts=None, near=True):
                     mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc)
+
+
+def _ewald_seconds(scene, p, nsrc, ntrg, own_pairs, eps):
+    """Predicted seconds of the Ewald far field (vesflow.layerpot.far.predicted_ewald) over the
+    box of the initial p-grid points (the period cell when periodic)."""
+    from .layerpot import far as farmod
+    from .simulation import initial_coefficients
+    from .surface import Surface
+    pts = Surface(initial_coefficients(scene), p).points().reshape(-1, 3)
+    period = scene.domain.period if scene.domain is not None else None
+    return farmod.predicted_ewald(pts, nsrc, ntrg, own_pairs, eps, period=period)[0]
 
 
 def _threads():

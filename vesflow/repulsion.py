@@ -44,7 +44,9 @@ def repulsion_force(surface, lp, radius, q_force):
     if pairs is None or radius <= 0:
         return out
     R = float(radius)
-    x = surface.points().reshape(-1, 3)[pairs[:, 0]]
+    near = lp.near
+    # the target's image nearest the other vesicle (periodic; the target itself in free space)
+    x = near["tpos"] if "tpos" in near else surface.points().reshape(-1, 3)[pairs[:, 0]]
     d = x - proj.point
     dist = np.linalg.norm(d, axis=1)
     hit = dist < CUTOFF * R

@@ -65,7 +65,8 @@ class Run:
         self.p = scene.p
         self.timers = Timers()
         settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"],
-                            backend=_backend(opts["far"]), fmm_eps=opts["far_tol"])
+                            backend=_backend(opts["far"]), fmm_eps=opts["far_tol"],
+                            period=scene.periodic_length or None)
         params = vesicle_params(scene)
         phys = physics(scene)
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
@@ -160,7 +161,7 @@ class Run:
 
     def _touching(self):
         with self.timers.stage("collision"):
-            return collision.contacts(self.stepper.surface, self.q_near) > 0
+            return collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene)) > 0
 
     def _attempt(self, dt):
         """_try(dt), noting the attempt (for `position`); if it raises, the stepper is put back
@@ -350,9 +351,9 @@ class Run:
 
 def check_available(scene, opts):
     """Refuse (exit status 3) what this version cannot run, before any output is created."""
-    if scene.domain is not None:
-        raise NumericalFailure("periodic domains ([domain]) are not available yet: the spectral Ewald "
-                               "far field is a later issue; remove [domain] to run in free space")
+    if scene.domain is not None and opts["far"] not in ("auto", "ewald"):
+        raise NumericalFailure(f"-ves_far {opts['far']}: a periodic domain ([domain]) needs the Ewald far "
+                               "field; use -ves_far ewald or auto")
     _backend(opts["far"])
 
 
@@ -368,7 +369,10 @@ def Tgrid(p, c):
     return sph.transform(p).synth(c)
 
 
+def scene_period(scene):
+    """The period of a triply periodic scene, None in free space."""
+    return scene.periodic_length or None
+
+
 def _backend(name):
-    if name == "ewald":
-        raise NumericalFailure("-ves_far ewald: the spectral Ewald far field is not available yet; use auto, direct or fmm")
     return name

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sph
-from .._kernels import search, stokes
+from .._kernels import stokes
 from . import near as nearmod
 from .far import FarField
 from .singular import SelfOperators
@@ -26,9 +26,10 @@ from .singular import SelfOperators
 class Settings:
     """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
 
-    def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8):
+    def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None):
         self.q_self, self.q_far = q_self, q_far
         self.near_factor, self.backend, self.fmm_eps = near_factor, backend, fmm_eps
+        self.period = period or None     # triply periodic cube (or box) side, None: free space
 
 
 class LayerPotentials:
@@ -64,18 +65,20 @@ class LayerPotentials:
         self.trg_id = np.repeat(np.arange(self.N, dtype=np.int64), self.Tp.npts)
         self.far = None
         self.near = None
-        if self.N > 1:
+        if self.N > 1 or s.period:          # periodic: a single vesicle sees its images
             with _timed(timers, "near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
             with _timed(timers, "far_setup"):
-                self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps)
+                self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps,
+                                    period=s.period)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
         """Near pairs, projections, line points and interpolation weights for targets trg."""
         hmax = float(self.h.max())
-        pairs, _ = search.near_pairs(trg, trg_id, self.src, self.src_id, hmax)
-        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        # tpos: each pair's target, moved to its image nearest the vesicle when periodic
+        pairs, tpos = nearmod.near_pairs_images(trg, trg_id, self.src, self.src_id, self.src_off, hmax,
+                                                self.settings.period)
         if len(pairs):
             keep = np.zeros(len(pairs), dtype=bool)
             # exact per-vesicle width: min distance from the target to the vesicle's sources
@@ -84,23 +87,27 @@ class LayerPotentials:
                 sl = slice(k0, k0 + 2048)
                 t, v = pairs[sl, 0], pairs[sl, 1]
                 pts = self.src.reshape(self.N, -1, 3)[v]                         # (B, Mq, 3)
-                d2 = np.einsum("bmk,bmk->bm", pts - trg[t][:, None], pts - trg[t][:, None])
+                d2 = np.einsum("bmk,bmk->bm", pts - tpos[sl][:, None], pts - tpos[sl][:, None])
                 j = d2.argmin(axis=1)
                 nearest[sl] = j
                 keep[sl] = np.sqrt(d2[np.arange(len(j)), j]) < 2.0 * self.h[v]
-            pairs, nearest = pairs[keep], nearest[keep]
+            pairs, nearest, tpos = pairs[keep], nearest[keep], tpos[keep]
         else:
             nearest = np.zeros(0, dtype=np.int64)
         info = {"pairs": np.ascontiguousarray(pairs)}
         if not len(pairs):
             return info
         it, jp = np.divmod(nearest, self.Tq.nlon)
-        proj = nearmod.Projection(self.surface.coeffs, self.p, trg[pairs[:, 0]], pairs[:, 1],
+        proj = nearmod.Projection(self.surface.coeffs, self.p, tpos, pairs[:, 1],
                                   self.Tq.theta[it], self.Tq.phi[jp])
         h = self.h[pairs[:, 1]]
         # targets farther than h from their projection are in the smooth-rule zone already
         inside_zone = np.abs(proj.signed_distance) < h
         info["pairs"] = np.ascontiguousarray(pairs[inside_zone])
+        info["tpos"] = np.ascontiguousarray(tpos[inside_zone])
+        P = len(info["pairs"])
+        # (row of tpos, vesicle): the pair list of the smooth-rule kernels
+        info["tpairs"] = np.ascontiguousarray(np.stack([np.arange(P), info["pairs"][:, 1]], axis=1))
         sel = lambda a: a[inside_zone]
         proj.theta, proj.phi, proj.point, proj.normal = map(sel, (proj.theta, proj.phi, proj.point, proj.normal))
         proj.signed_distance, proj.converged = sel(proj.signed_distance), sel(proj.converged)
@@ -110,7 +117,6 @@ class LayerPotentials:
         oriented = _Oriented(proj, side)
         pts, _ = nearmod.line_points(oriented, h[inside_zone])
         info["line_points"] = np.ascontiguousarray(pts.reshape(-1, 3))
-        P = len(info["pairs"])
         info["line_pairs"] = np.ascontiguousarray(
             np.stack([np.arange(P * nearmod.L_POINTS), np.repeat(info["pairs"][:, 1], nearmod.L_POINTS)], axis=1))
         info["weights"] = nearmod.interpolation_weights(oriented, h[inside_zone])
@@ -138,7 +144,7 @@ class LayerPotentials:
         parts = parts if parts is not None else {}
         with _timed(self.timers, "self"):
             u_self = self.self_part(f, g)
-        if self.N == 1:
+        if self.far is None:
             return u_self
         fw, gq = self._densities(f, g)
         with _timed(self.timers, "far"):
@@ -154,11 +160,11 @@ class LayerPotentials:
             return vals
         pairs = info["pairs"]
         smooth = np.zeros((len(pairs), 3))
-        stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, trg, pairs, smooth)
+        stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, info["tpos"], info["tpairs"], smooth)
         line = np.zeros((len(info["line_points"]), 3))
         stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, info["line_points"], info["line_pairs"], line)
         if gq is not None:
-            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, trg, pairs, smooth)
+            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["tpos"], info["tpairs"], smooth)
             stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["line_points"],
                                        info["line_pairs"], line)
         v = pairs[:, 1]
@@ -178,7 +184,8 @@ class LayerPotentials:
         targets = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
         tid = np.full(len(targets), -1, dtype=np.int64)
         fw, gq = self._densities(f, g)
-        far = FarField(self.src, self.src_id, targets, tid, backend=self.settings.backend, eps=self.settings.fmm_eps)
+        far = FarField(self.src, self.src_id, targets, tid, backend=self.settings.backend, eps=self.settings.fmm_eps,
+                       period=self.settings.period)
         vals = far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
         info = self._near_setup(targets, tid)
         return self._near_correct(vals, info, targets, fw, gq, self.self_part(f, g), g)
@@ -204,15 +211,19 @@ class LayerPotentials:
         if self.near is not None and "projection" in self.near:
             info = self.near
             smooth = np.zeros((len(info["pairs"]), 3))
-            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, self.trg, info["pairs"], smooth)
+            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["tpos"], info["tpairs"], smooth)
             line = np.zeros((len(info["line_points"]), 3))
             stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["line_points"],
                                        info["line_pairs"], line)
             u0 = (0.5 - 0.5 * info["side"])[:, None] * np.ones((1, 3))   # outside limit: 0, inside: 1
             line = line.reshape(len(info["pairs"]), nearmod.L_POINTS, 3)
             w = info["weights"]
-            np.add.at(vals, info["pairs"][:, 0], w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line) - smooth)
-            near_t[info["pairs"][:, 0]] = True
+            # periodic: pairs with a periodic image of the target are left out (the direct sum
+            # above is over the primary images only)
+            prim = np.all(info["tpos"] == self.trg[info["pairs"][:, 0]], axis=1)
+            corr = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line) - smooth
+            np.add.at(vals, info["pairs"][prim, 0], corr[prim])
+            near_t[info["pairs"][prim, 0]] = True
         err = np.abs(vals).max(axis=1)
         out["near"] = float(err[near_t].max()) if near_t.any() else 0.0
         out["far"] = float(err[~near_t].max()) if (~near_t).any() else 0.0

@@ -33,9 +33,15 @@ Backends
     a pair below its own threshold (~1e-15 relative) but evaluates a pair at 1e-13 with
     huge, badly rounded values, which the subtraction would not cancel.  The far field of
     the other vesicles moves by O(SNAP_TOL) relative.
+``"ewald"``
+    The spectral Ewald sum of :mod:`vesflow.layerpot.ewald` (free space, or triply periodic
+    with ``period``): O((T + S) log) at accuracy ``eps`` (relative to the largest velocity),
+    plus the O(N M Q) own-vesicle subtraction (the FMM's cost too).
 ``"auto"``
-    ``"fmm"`` when ``T * S >= AUTO_FMM_MIN_PAIRS`` (and fmm3dpy imports), else ``"direct"``.
-    The threshold was measured with benchmarks/far_field.py (docs/far_field.md).
+    The backend :func:`predicted_seconds` says is fastest (fmm only if fmm3dpy imports,
+    ewald only if ducc0 or finufft does and the points are given); periodic: always ewald.
+    The constants were measured with benchmarks/far_field.py and benchmarks/ewald.py
+    (docs/far_field.md).
 
 FMM accuracy: ``eps`` (default ``DEFAULT_EPS = 1e-8``) is fmm3dpy's requested precision;
 the error measured against the direct sum, relative to the largest velocity, is below
@@ -51,7 +57,7 @@ from vesflow._kernels import search as _search
 from vesflow._kernels import stokes as _stokes
 from vesflow.errors import NumericalFailure, SceneError
 
-BACKENDS = ("direct", "fmm", "auto")
+BACKENDS = ("direct", "fmm", "ewald", "auto")
 DEFAULT_EPS = 1e-8
 # Cost model of "auto", measured with benchmarks/far_field.py on this machine (docs/far_field.md):
 # direct sum: seconds per (target, source) pair for ONE OpenMP thread (divided by the threads);
@@ -76,6 +82,11 @@ def _have_fmm():
     return True
 
 
+def _have_ewald():
+    from . import ewald
+    return any(ewald._have(lib) for lib in ewald.NUFFT_LIBS)
+
+
 def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
     """Predicted seconds per evaluation ``(direct, fmm)`` of the single layer (model above)."""
     threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
@@ -86,23 +97,55 @@ def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
     return t_direct, (float(nsrc) + float(ntrg)) * per_point
 
 
-def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS):
-    """Resolve ``backend`` ("direct", "fmm" or "auto") for S sources and T targets.
+def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None):
+    """``(seconds, params)`` of the Ewald sum (single layer) over ``points`` (sources and
+    targets, or any points spanning their box), ``own_pairs`` target-source pairs of the
+    same vesicle (the O(N M Q) subtraction); the parameters from
+    :func:`vesflow.layerpot.ewald.choose_params`."""
+    from . import ewald
+    threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
+    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads)
+    return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs), p
 
-    "auto" takes the FMM when :func:`predicted_seconds` says it is faster and fmm3dpy
-    imports, else the direct sum.
+
+def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS, t_ewald=None, periodic=False):
+    """Resolve ``backend`` ("direct", "fmm", "ewald" or "auto") for S sources and T targets.
+
+    "auto" takes the backend :func:`predicted_seconds` says is fastest among those available
+    (ewald only when its prediction ``t_ewald`` is given); periodic: ewald, the only one.
     """
     if backend not in BACKENDS:
         raise SceneError(f"far-field backend {backend!r} is not one of {', '.join(BACKENDS)}")
+    if periodic and backend not in ("ewald", "auto"):
+        raise SceneError(f"far-field backend {backend!r} cannot sum over a periodic box; "
+                         "use -ves_far ewald or auto")
     if backend == "auto":
-        t_direct, t_fmm = predicted_seconds(nsrc, ntrg, eps)
-        if t_fmm < t_direct and _have_fmm():
-            return "fmm"
-        return "direct"
+        if periodic:
+            backend = "ewald"
+        else:
+            t_direct, t_fmm = predicted_seconds(nsrc, ntrg, eps)
+            cands = [(t_direct, "direct")]
+            if _have_fmm():
+                cands.append((t_fmm, "fmm"))
+            if t_ewald is not None and _have_ewald():
+                cands.append((t_ewald, "ewald"))
+            return min(cands)[1]
     if backend == "fmm" and not _have_fmm():
         raise SceneError("far-field backend 'fmm' needs fmm3dpy (pip install fmm3dpy); "
                          "use backend 'direct' or 'auto'")
+    if backend == "ewald" and not _have_ewald():
+        raise SceneError("far-field backend 'ewald' needs ducc0 or finufft (pip install finufft); "
+                         "use backend 'direct' or 'auto'")
     return backend
+
+
+def _own_pairs(src_id, trg_id):
+    """Number of (target, source) pairs with the same id."""
+    ids, cnt = np.unique(src_id, return_counts=True)
+    if not ids.size:
+        return 0
+    vi = np.minimum(np.searchsorted(ids, trg_id), ids.size - 1)
+    return int(np.where(ids[vi] == trg_id, cnt[vi], 0).sum())
 
 
 def _points(name, a):
@@ -129,18 +172,32 @@ class FarField:
     ``n_snapped`` (targets moved onto a coincident own source, FMM only).
     """
 
-    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS):
+    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None):
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
         self.trg_id = _ids("trg_id", trg_id, self.trg.shape[0])
         if not (0.0 < eps < 1.0):
-            raise SceneError(f"FMM accuracy eps must lie in (0, 1), got {eps}")
+            raise SceneError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
         self.eps = float(eps)
-        self.backend = choose_backend(self.src.shape[0], self.trg.shape[0], backend, self.eps)
+        self.period = period
+        ns, nt = self.src.shape[0], self.trg.shape[0]
+        t_ewald, params = None, None
+        if backend == "auto" and period is None and ns and nt and _have_ewald():
+            try:
+                t_ewald, params = predicted_ewald(np.concatenate([self.src, self.trg]), ns, nt,
+                                                  _own_pairs(self.src_id, self.trg_id), self.eps)
+            except SceneError:               # no grid fits the memory: not a candidate
+                t_ewald, params = None, None
+        self.backend = choose_backend(ns, nt, backend, self.eps, t_ewald, periodic=period is not None)
         self.n_snapped = 0
+        self.ewald = None
         if self.backend == "fmm":
             self._setup_fmm()
+        elif self.backend == "ewald":
+            from .ewald import EwaldSum
+            self.ewald = EwaldSum(self.src, self.src_id, self.trg, self.trg_id, tol=self.eps, period=period,
+                                  params=params)
 
     # ------------------------------------------------------------------ set-up (FMM)
     def _setup_fmm(self):
@@ -197,6 +254,8 @@ class FarField:
         out = np.zeros((nt, 3))
         if nt == 0 or ns == 0 or (f_w is None and g is None):
             return out
+        if self.backend == "ewald":
+            return self.ewald.evaluate(f_w, nw, g)
         if self.backend == "direct":
             if f_w is not None:
                 _stokes.stokeslet_sum_excl(self.src, f_w, self.src_id, self.trg, self.trg_id, out)

@@ -162,3 +162,59 @@ def interpolation_weights(projection, h):
         return np.zeros((0, L_POINTS + 1))
     d = np.abs(projection.signed_distance)
     return lagrange_weights(nodes[0] / nodes[0, -1], d / nodes[:, -1])
+
+
+def near_pairs_images(trg, trg_id, src, src_id, src_off, h, period=None):
+    """Near (target, vesicle) pairs, with the target's position in the vesicle's frame.
+
+    Free space (``period`` None): :func:`vesflow._kernels.search.near_pairs`; the positions are
+    the targets'.  Triply periodic (``period`` a number or 3 numbers): minimum image.  Each
+    vesicle ``v`` (sources ``src_off[v] .. src_off[v+1]``, sorted by id) is moved by the
+    lattice vector ``s_v`` that brings its centroid into the period cell, the targets are
+    wrapped into the cell and copied to the 26 neighbouring cells where they lie within the
+    largest vesicle radius + h of the cell, and a pair found for a copy ``y`` gets the
+    position ``y - s_v``: the image of the target nearest to vesicle v at its given
+    (unwrapped) position.  The period must exceed a vesicle's diameter + 2 h (a vesicle near
+    its own image is not detected).  Returns ``(pairs (P, 2) int64, positions (P, 3))``.
+    """
+    from .._kernels import search
+    trg = np.ascontiguousarray(trg, dtype=np.float64)
+    if period is None:
+        pairs, _ = search.near_pairs(trg, trg_id, src, src_id, h)
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        return pairs, trg[pairs[:, 0]]
+    L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,))
+    nv = len(src_off) - 1
+    counts = np.diff(src_off)
+    cent = np.add.reduceat(src, src_off[:-1], axis=0) / counts[:, None]
+    shift = -L * np.floor(cent / L)                                     # (nv, 3)
+    vrow = np.repeat(np.arange(nv), counts)
+    src_w = np.ascontiguousarray(src + shift[vrow])
+    radius = float(np.max(np.linalg.norm(src - cent[vrow], axis=1))) if len(src) else 0.0
+    margin = radius + h
+    if 2.0 * margin >= float(L.min()):
+        from ..errors import SceneError
+        raise SceneError(f"[domain] period = {float(L.min()):g} must exceed a vesicle's diameter plus twice the "
+                         f"near distance ({2.0 * margin:.3g}): a vesicle would be near its own image")
+    tw = trg - L * np.floor(trg / L)
+    copies, index = [], []
+    for n in np.ndindex(3, 3, 3):
+        y = tw + L * (np.asarray(n) - 1)
+        keep = np.all((y > -margin) & (y < L + margin), axis=1)
+        copies.append(y[keep])
+        index.append(np.flatnonzero(keep))
+    aug = np.ascontiguousarray(np.concatenate(copies))
+    aug_t = np.concatenate(index).astype(np.int64)
+    aug_id = np.ascontiguousarray(np.asarray(trg_id, dtype=np.int64)[aug_t])
+    pairs, _ = search.near_pairs(aug, aug_id, src_w, src_id, h)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    ids = np.asarray(src_id, dtype=np.int64)[src_off[:-1]]             # vesicle index -> id
+    vi = np.searchsorted(ids, pairs[:, 1]) if not np.all(ids == np.arange(nv)) else pairs[:, 1]
+    pos = aug[pairs[:, 0]] - shift[vi]
+    out = np.stack([aug_t[pairs[:, 0]], pairs[:, 1]], axis=1)
+    # one image per (target, vesicle): the nearest copy (others only if the period is too small)
+    key = out[:, 0] * (int(ids.max()) + 1 if len(ids) else 1) + out[:, 1]
+    order = np.lexsort((np.linalg.norm(pos - cent[vi], axis=1), key))
+    first = order[np.r_[True, key[order][1:] != key[order][:-1]]] if len(order) else order
+    first = np.sort(first)
+    return np.ascontiguousarray(out[first]), np.ascontiguousarray(pos[first])

@@ -1,0 +1,591 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/far_field.md, "Ewald").
+
+With ``r = x - y`` (target minus source), ``z = xi r``, ``e = exp(-z^2)`` and the kernels of
+method reference section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
+(``G = I/r + r r^T/r^3``, ``T_ijl = -6 r_i r_j r_l / r^5``), the Hasimoto split
+``G = G^R + G^F``, ``T = T^R + T^F`` has the real-space parts (Hasimoto 1959; Lindbo and
+Tornberg 2010, eq. 2.5; af Klinteberg and Tornberg 2014 for the stresslet)::
+
+    G^R = (erfc(z)/r - 2 xi e/sqrt(pi)) I + (erfc(z)/r + 2 xi e/sqrt(pi)) r r^T / r^2
+    T^R = A (delta_ij r_l + delta_jl r_i + delta_il r_j) + B r_i r_j r_l
+          A = 4 xi^3 e / sqrt(pi)
+          B = -2 (3 erfc(z)/r^5 + (6 xi / r^4 + 4 xi^3 / r^2) e / sqrt(pi))
+
+and the smooth parts ``G^F = G - G^R``, ``T^F = T - T^R`` (needed at short range for the
+excluded own-vesicle pairs, below)::
+
+    G^F = (erf(z)/r + 2 xi e/sqrt(pi)) I + a r r^T,       a = (erf(z)/r - 2 xi e/sqrt(pi)) / r^2
+    T^F = -A (delta r + ...) + b r r r,                   b = -6 erf(z)/r^5 - (B + 6 erfc(z)/r^5)
+
+``a`` and ``b`` cancel catastrophically for small ``z``; below ``z = SERIES_Z`` they are
+evaluated from their Taylor series (``a = (2 xi^3/sqrt(pi)) sum_{n>=1} (-1)^(n+1) 2n/(2n+1)
+z^(2n-2)/n!``, ``b = -(16 xi^5/sqrt(pi)) sum_{m>=2} (-1)^m m(m-1)/((2m+1) m!) z^(2m-4)``).
+``G^F(0) = 4 xi / sqrt(pi) I``, ``T^F(0) = 0``.
+
+:func:`real_space` sums, for every target ``t``, over all sources ``s`` and periodic images
+``n`` (periodic) or the sources (free space), LEAVING OUT the sources of the target's own
+vesicle at their given (unwrapped) position::
+
+    sum_{(s, n) != (own, 0), |r| < rc} G^R(r) f_s  -  sum_{s own} G^F_rc(x_t - y_s) f_s
+
+with ``G^F_rc = G^F`` for ``|r| < rc`` and ``G`` beyond (and the same for ``T``), so that the
+Fourier part over ALL sources plus this gives the Ewald sum without the own vesicle.  A
+coincident pair (``r = 0``) of different vesicles is skipped like the direct sum skips it,
+i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image,
+``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, counting
+sort) and an OpenMP ``prange`` over targets; every output row ACCUMULATES (``out += ...``).
+"""
+import numpy as np
+
+from cython.parallel cimport prange
+from libc.math cimport sqrt, exp, erf, erfc, floor, nearbyint, M_PI
+cimport openmp
+
+cdef double INV8PI = 1.0 / (8.0 * M_PI)
+cdef double SQPI = 1.7724538509055160273          # sqrt(pi)
+SERIES_Z = 0.2
+cdef double _SERIES_Z = 0.2
+# cells of side >= rc / SUB, (2 SUB + 1)^3 neighbour cells: 2 visits (2.5 rc)^3 instead of
+# (3 rc)^3 for a sphere of (4/3) pi rc^3
+cdef long SUB = 2
+
+
+# ---------------------------------------------------------------------------------------
+# tabulated real-space coefficients: on [0, rc] cut into TAB_N intervals, the smooth functions
+#   a1 = erfc(z) - 2 z e / sqrt(pi)          (G^R: coefficient of I is a1 / r)
+#   a2 = erfc(z) + 2 z e / sqrt(pi)          (coefficient of r r^T is a2 / r^3)
+#   a3 = A = 4 xi^3 e / sqrt(pi)             (T^R)
+#   a4 = B r^5 = -2 (3 erfc(z) + (6 z + 4 z^3) e / sqrt(pi))
+# (z = xi r, e = exp(-z^2)) as polynomials of degree TAB_DEG in t in [-1, 1] per interval
+# (Chebyshev interpolation; error ~1e-16 relative, measured in tests/test_ewald.py): about
+# twice as fast as erfc and exp per pair.
+# ---------------------------------------------------------------------------------------
+DEF TAB_N = 64
+DEF TAB_DEG = 7
+DEF TAB_STRIDE = 4 * (TAB_DEG + 1)
+
+
+def _table(double xi, double rc):
+    """Coefficients (TAB_N, 4, TAB_DEG + 1) of the tabulated functions, monomials in t."""
+    from scipy.special import erfc as _erfc
+    cheb = np.polynomial.chebyshev
+    nodes = np.cos(np.pi * (np.arange(TAB_DEG + 1) + 0.5) / (TAB_DEG + 1))
+    tab = np.empty((TAB_N, 4, TAB_DEG + 1))
+    h = rc / TAB_N
+    sq = np.sqrt(np.pi)
+    for k in range(TAB_N):
+        r = (k + 0.5 * (nodes + 1.0)) * h
+        z = xi * r
+        e = np.exp(-z * z)
+        ec = _erfc(z)
+        vals = (ec - 2 * z * e / sq, ec + 2 * z * e / sq, 4 * xi ** 3 * e / sq,
+                -2 * (3 * ec + (6 * z + 4 * z ** 3) * e / sq))
+        for j in range(4):
+            tab[k, j] = cheb.cheb2poly(cheb.chebfit(nodes, vals[j], TAB_DEG))
+    return tab
+
+
+def tabulated(double xi, double rc, const double[::1] r):
+    """The four tabulated functions at radii r (<= rc), (n, 4) (tests)."""
+    tab_np = np.ascontiguousarray(_table(xi, rc))
+    cdef const double[:, :, ::1] tab = tab_np
+    out = np.empty((r.shape[0], 4))
+    cdef Py_ssize_t i
+    cdef double v[4]
+    for i in range(r.shape[0]):
+        _tab_eval(&tab[0, 0, 0], TAB_N / rc, r[i], 4, v)
+        out[i, 0] = v[0]; out[i, 1] = v[1]; out[i, 2] = v[2]; out[i, 3] = v[3]
+    return out
+
+
+cdef inline void _tab_eval(const double* tab, double tinv, double r, int nf, double* v) noexcept nogil:
+    """v[0:nf] = tabulated functions 0..nf-1 (0, 1: single layer; 2, 3: double layer) at r,
+    or 2..3 when nf == -2."""
+    cdef double x = r * tinv
+    cdef long k = <long> x
+    cdef int j, d, j0 = 0, j1 = nf
+    if nf < 0:
+        j0 = 2
+        j1 = 4
+    if k >= TAB_N:
+        k = TAB_N - 1
+    cdef double t = 2.0 * (x - k) - 1.0, acc
+    cdef const double* c = tab + k * TAB_STRIDE
+    for j in range(j0, j1):
+        acc = c[j * (TAB_DEG + 1) + TAB_DEG]
+        for d in range(TAB_DEG - 1, -1, -1):
+            acc = acc * t + c[j * (TAB_DEG + 1) + d]
+        v[j] = acc
+
+
+cdef inline void _gr_tab(double r0, double r1, double r2, double rr, const double* tab, double tinv,
+                         const double* f, double* a) noexcept nogil:
+    """a[0:3] += G^R(r) f from the table (0 < r <= rc)."""
+    cdef double v[4]
+    cdef double r = sqrt(rr), ri = 1.0 / r
+    _tab_eval(tab, tinv, r, 2, v)
+    cdef double ci = v[0] * ri
+    cdef double cr = v[1] * ri * ri * ri * (r0 * f[0] + r1 * f[1] + r2 * f[2])
+    a[0] += ci * f[0] + cr * r0
+    a[1] += ci * f[1] + cr * r1
+    a[2] += ci * f[2] + cr * r2
+
+
+cdef inline void _tr_tab(double r0, double r1, double r2, double rr, const double* tab, double tinv,
+                         const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] += T^R(r):(g nw) from the table (0 < r <= rc)."""
+    cdef double v[4]
+    cdef double r = sqrt(rr), ri = 1.0 / r, ri2 = ri * ri
+    _tab_eval(tab, tinv, r, -2, v)
+    cdef double A = v[2]
+    cdef double B = v[3] * ri2 * ri2 * ri
+    cdef double rn = r0 * nw[0] + r1 * nw[1] + r2 * nw[2]
+    cdef double rg = r0 * g[0] + r1 * g[1] + r2 * g[2]
+    cdef double gn = g[0] * nw[0] + g[1] * nw[1] + g[2] * nw[2]
+    cdef double c = A * gn + B * rn * rg
+    a[0] += A * (g[0] * rn + nw[0] * rg) + c * r0
+    a[1] += A * (g[1] * rn + nw[1] * rg) + c * r1
+    a[2] += A * (g[2] * rn + nw[2] * rg) + c * r2
+
+
+cdef inline void _gf_coef(double rr, double xi, double* ci, double* ca) noexcept nogil:
+    """G^F(r) = ci I + ca r r^T (any r, also 0; series below z = SERIES_Z)."""
+    cdef double r = sqrt(rr), z = xi * r, z2 = z * z, e = exp(-z2)
+    cdef double t, s
+    cdef int n
+    if z < _SERIES_Z:
+        # erf(z)/r = (2 xi/sqrt(pi)) sum (-1)^n z^2n / (n! (2n+1));  a by its series
+        s = 0.0
+        t = 1.0
+        for n in range(0, 12):
+            s += t / (2 * n + 1)
+            t *= -z2 / (n + 1)
+        ci[0] = 2.0 * xi / SQPI * s + 2.0 * xi * e / SQPI
+        s = 0.0
+        t = 1.0                    # (-1)^(n+1) z^(2n-2) / n!, n = 1
+        for n in range(1, 13):
+            s += t * (2.0 * n) / (2 * n + 1)
+            t *= -z2 / (n + 1)
+        ca[0] = 2.0 * xi * xi * xi / SQPI * s
+    else:
+        ci[0] = erf(z) / r + 2.0 * xi * e / SQPI
+        ca[0] = (erf(z) / r - 2.0 * xi * e / SQPI) / rr
+
+
+cdef inline void _tf_coef(double rr, double xi, double* A, double* b) noexcept nogil:
+    """T^F(r) = -A (delta r + ...) + b r r r (any r, also 0; series below z = SERIES_Z)."""
+    cdef double r = sqrt(rr), z = xi * r, z2 = z * z, e = exp(-z2) / SQPI
+    cdef double xi3 = xi * xi * xi, s, t, ri2
+    cdef int m
+    A[0] = 4.0 * xi3 * e
+    if z < _SERIES_Z:
+        s = 0.0
+        t = 0.5                    # (-1)^m z^(2m-4) / m!, m = 2
+        for m in range(2, 14):
+            s += t * m * (m - 1) / (2.0 * m + 1)
+            t *= -z2 / (m + 1)
+        b[0] = -16.0 * xi3 * xi * xi / SQPI * s
+    else:
+        ri2 = 1.0 / rr
+        b[0] = -6.0 * erf(z) * ri2 * ri2 / r + (12.0 * xi * ri2 * ri2 + 8.0 * xi3 * ri2) * e
+
+
+cdef inline void _gf_apply(double r0, double r1, double r2, double ci, double ca,
+                           const double* f, double* a) noexcept nogil:
+    """a[0:3] -= (ci I + ca r r^T) f."""
+    cdef double t = ca * (r0 * f[0] + r1 * f[1] + r2 * f[2])
+    a[0] -= ci * f[0] + t * r0
+    a[1] -= ci * f[1] + t * r1
+    a[2] -= ci * f[2] + t * r2
+
+
+cdef inline void _tf_apply(double r0, double r1, double r2, double A, double b,
+                           const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= (-A (delta r + ...) + b r r r):(g nw)."""
+    cdef double rn = r0 * nw[0] + r1 * nw[1] + r2 * nw[2]
+    cdef double rg = r0 * g[0] + r1 * g[1] + r2 * g[2]
+    cdef double gn = g[0] * nw[0] + g[1] * nw[1] + g[2] * nw[2]
+    cdef double c = -A * gn + b * rn * rg
+    a[0] -= -A * (g[0] * rn + nw[0] * rg) + c * r0
+    a[1] -= -A * (g[1] * rn + nw[1] * rg) + c * r1
+    a[2] -= -A * (g[2] * rn + nw[2] * rg) + c * r2
+
+
+cdef inline void _gf_minus(double r0, double r1, double r2, double rr, double xi,
+                           const double* f, double* a) noexcept nogil:
+    """a[0:3] -= G^F(r) f (any r, also 0)."""
+    cdef double ci, ca
+    _gf_coef(rr, xi, &ci, &ca)
+    _gf_apply(r0, r1, r2, ci, ca, f, a)
+
+
+cdef inline void _tf_minus(double r0, double r1, double r2, double rr, double xi,
+                           const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= T^F(r):(g nw) (any r; 0 at r = 0)."""
+    cdef double A, b
+    _tf_coef(rr, xi, &A, &b)
+    _tf_apply(r0, r1, r2, A, b, nw, g, a)
+
+
+# the smooth parts of the own-vesicle pairs inside rc, tabulated in s = r^2 (ci, ca, A, b are
+# entire functions of s): TAB2_N Chebyshev pieces of degree TAB_DEG over [0, rc^2]
+DEF TAB2_N = 128
+
+
+def _table_smooth(double xi, double rc):
+    """Coefficients (TAB2_N, 4, TAB_DEG + 1) of ci, ca, A, b as polynomials in t per piece of s."""
+    cheb = np.polynomial.chebyshev
+    nodes = np.cos(np.pi * (np.arange(TAB_DEG + 1) + 0.5) / (TAB_DEG + 1))
+    tab = np.empty((TAB2_N, 4, TAB_DEG + 1))
+    vals = np.empty((4, TAB_DEG + 1))
+    cdef double h = rc * rc / TAB2_N, ci, ca, A, b
+    cdef int k, j
+    for k in range(TAB2_N):
+        for j in range(TAB_DEG + 1):
+            ss = (k + 0.5 * (nodes[j] + 1.0)) * h
+            _gf_coef(ss, xi, &ci, &ca)
+            _tf_coef(ss, xi, &A, &b)
+            vals[0, j], vals[1, j], vals[2, j], vals[3, j] = ci, ca, A, b
+        for j in range(4):
+            tab[k, j] = cheb.cheb2poly(cheb.chebfit(nodes, vals[j], TAB_DEG))
+    return tab
+
+
+cdef inline void _tab2_eval(const double* tab, double tinv, double s, int j0, int j1, double* v) noexcept nogil:
+    """v[j0:j1] = the tabulated smooth-part coefficients at s = r^2 <= rc^2."""
+    cdef double x = s * tinv
+    cdef long k = <long> x
+    cdef int j, d
+    if k >= TAB2_N:
+        k = TAB2_N - 1
+    cdef double t = 2.0 * (x - k) - 1.0, acc
+    cdef const double* c = tab + k * TAB_STRIDE
+    for j in range(j0, j1):
+        acc = c[j * (TAB_DEG + 1) + TAB_DEG]
+        for d in range(TAB_DEG - 1, -1, -1):
+            acc = acc * t + c[j * (TAB_DEG + 1) + d]
+        v[j] = acc
+
+
+def smooth_part_tabulated(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
+                          const double[:, ::1] g, double xi, double rc):
+    """As :func:`smooth_part` from the own-vesicle table (|r| < rc) (tests)."""
+    tab_np = np.ascontiguousarray(_table_smooth(xi, rc))
+    cdef const double[:, :, ::1] tab = tab_np
+    cdef Py_ssize_t k, n = r.shape[0]
+    out = np.zeros((n, 3))
+    cdef double[:, ::1] o = out
+    cdef double a[3]
+    cdef double v[4]
+    cdef double rr
+    for k in range(n):
+        a[0] = 0.0; a[1] = 0.0; a[2] = 0.0
+        rr = r[k, 0] ** 2 + r[k, 1] ** 2 + r[k, 2] ** 2
+        _tab2_eval(&tab[0, 0, 0], TAB2_N / (rc * rc), rr, 0, 4, v)
+        _gf_apply(r[k, 0], r[k, 1], r[k, 2], v[0], v[1], &f[k, 0], a)
+        _tf_apply(r[k, 0], r[k, 1], r[k, 2], v[2], v[3], &nw[k, 0], &g[k, 0], a)
+        o[k, 0] = -a[0] * INV8PI; o[k, 1] = -a[1] * INV8PI; o[k, 2] = -a[2] * INV8PI
+    return out
+
+
+cdef inline void _g_minus(double r0, double r1, double r2, double rr,
+                          const double* f, double* a) noexcept nogil:
+    """a[0:3] -= G(r) f (r != 0)."""
+    cdef double ri = 1.0 / sqrt(rr)
+    cdef double t = (r0 * f[0] + r1 * f[1] + r2 * f[2]) * ri * ri * ri
+    a[0] -= f[0] * ri + t * r0
+    a[1] -= f[1] * ri + t * r1
+    a[2] -= f[2] * ri + t * r2
+
+
+cdef inline void _t_minus(double r0, double r1, double r2, double rr,
+                          const double* nw, const double* g, double* a) noexcept nogil:
+    """a[0:3] -= T(r):(g nw) = +6 (r.nw)(r.g) r / r^5 (r != 0)."""
+    cdef double ri = 1.0 / sqrt(rr), ri2 = ri * ri
+    cdef double c = 6.0 * (r0 * nw[0] + r1 * nw[1] + r2 * nw[2]) * (r0 * g[0] + r1 * g[1] + r2 * g[2]) * ri2 * ri2 * ri
+    a[0] += c * r0
+    a[1] += c * r1
+    a[2] += c * r2
+
+
+ctypedef struct _Box:
+    long n[3]
+    double L[3]
+    bint periodic
+    double rc2
+    double xi
+    const double* ys          # wrapped source positions in cell order
+    const long* sidx          # original (id-sorted) index of each cell-ordered source
+    const long* cstart        # cell c holds ys[cstart[c] .. cstart[c+1]]
+    const double* src         # given (unwrapped) positions, id-sorted
+    const long* src_id
+    const long* src_off
+    const double* f
+    const double* nw
+    const double* g
+    const double* tab         # tabulated coefficients (_table), tinv = TAB_N / rc
+    double tinv
+    const double* tab2        # own-vesicle smooth parts (_table_smooth), tinv2 = TAB2_N / rc^2
+    double tinv2
+
+
+cdef inline void _range(const _Box* b, long c, long k, long* lo, long* hi) noexcept nogil:
+    """Neighbour cells of cell c along an axis with k cells (cells of side >= rc / SUB):
+    periodic with >= 2 SUB + 1 cells c-SUB..c+SUB (wrapped later); fewer cells: each cell
+    once; free space: c-SUB..c+SUB clipped."""
+    if b.periodic and k < 2 * SUB + 1:
+        lo[0] = 0
+        hi[0] = k - 1
+    elif b.periodic:
+        lo[0] = c - SUB
+        hi[0] = c + SUB
+    else:
+        lo[0] = c - SUB if c >= SUB else 0
+        hi[0] = c + SUB if c + SUB < k else k - 1
+
+
+cdef void _target(const _Box* b, const double* x, const double* xw, const long* tc,
+                  long tid, long tv, double* out) noexcept nogil:
+    """out[0:3] += real-space sum at one target (x given, xw wrapped, tc its cell)."""
+    cdef double a[3]
+    cdef long lo[3]
+    cdef long hi[3]
+    cdef long d0, d1, d2, e0, e1, e2, cell
+    cdef Py_ssize_t j, s
+    cdef double r0, r1, r2, rr, q0, q1, q2
+    cdef double gf0 = 4.0 * b.xi / SQPI
+    cdef double v[4]
+    cdef bint do_sl = b.f != NULL, do_dl = b.g != NULL
+    a[0] = 0.0
+    a[1] = 0.0
+    a[2] = 0.0
+    for j in range(3):
+        _range(b, tc[j], b.n[j], &lo[j], &hi[j])
+    for d0 in range(lo[0], hi[0] + 1):
+        e0 = (d0 + b.n[0]) % b.n[0]
+        for d1 in range(lo[1], hi[1] + 1):
+            e1 = (d1 + b.n[1]) % b.n[1]
+            for d2 in range(lo[2], hi[2] + 1):
+                e2 = (d2 + b.n[2]) % b.n[2]
+                cell = (e0 * b.n[1] + e1) * b.n[2] + e2
+                for j in range(b.cstart[cell], b.cstart[cell + 1]):
+                    r0 = xw[0] - b.ys[3 * j]
+                    r1 = xw[1] - b.ys[3 * j + 1]
+                    r2 = xw[2] - b.ys[3 * j + 2]
+                    if b.periodic:
+                        r0 = r0 - b.L[0] * nearbyint(r0 / b.L[0])
+                        r1 = r1 - b.L[1] * nearbyint(r1 / b.L[1])
+                        r2 = r2 - b.L[2] * nearbyint(r2 / b.L[2])
+                    rr = r0 * r0 + r1 * r1 + r2 * r2
+                    if rr >= b.rc2:
+                        continue
+                    s = b.sidx[j]
+                    if tv >= 0 and b.src_id[s] == tid:
+                        # own vesicle at its given position: done in the own loop below
+                        q0 = x[0] - b.src[3 * s]
+                        q1 = x[1] - b.src[3 * s + 1]
+                        q2 = x[2] - b.src[3 * s + 2]
+                        if q0 * q0 + q1 * q1 + q2 * q2 < b.rc2:
+                            continue
+                    if rr == 0.0:
+                        if do_sl:
+                            a[0] -= gf0 * b.f[3 * s]
+                            a[1] -= gf0 * b.f[3 * s + 1]
+                            a[2] -= gf0 * b.f[3 * s + 2]
+                        continue
+                    if do_sl:
+                        _gr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.f + 3 * s, a)
+                    if do_dl:
+                        _tr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.nw + 3 * s, b.g + 3 * s, a)
+    # own vesicle at its given position: -G^F (|r| < rc) or -G (beyond)
+    if tv >= 0:
+        for s in range(b.src_off[tv], b.src_off[tv + 1]):
+            q0 = x[0] - b.src[3 * s]
+            q1 = x[1] - b.src[3 * s + 1]
+            q2 = x[2] - b.src[3 * s + 2]
+            rr = q0 * q0 + q1 * q1 + q2 * q2
+            if rr < b.rc2:
+                _tab2_eval(b.tab2, b.tinv2, rr, 0 if do_sl else 2, 4 if do_dl else 2, v)
+                if do_sl:
+                    _gf_apply(q0, q1, q2, v[0], v[1], b.f + 3 * s, a)
+                if do_dl:
+                    _tf_apply(q0, q1, q2, v[2], v[3], b.nw + 3 * s, b.g + 3 * s, a)
+            else:
+                if do_sl:
+                    _g_minus(q0, q1, q2, rr, b.f + 3 * s, a)
+                if do_dl:
+                    _t_minus(q0, q1, q2, rr, b.nw + 3 * s, b.g + 3 * s, a)
+    out[0] += a[0] * INV8PI
+    out[1] += a[1] * INV8PI
+    out[2] += a[2] * INV8PI
+
+
+def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
+                const double[:, ::1] g, double xi):
+    """``G^F(r_k) f_k / (8 pi) + T^F(r_k):(g_k nw_k) / (8 pi)`` for each row k, (n, 3) (tests)."""
+    cdef Py_ssize_t k, n = r.shape[0]
+    out = np.zeros((n, 3))
+    cdef double[:, ::1] o = out
+    cdef double a[3]
+    for k in range(n):
+        a[0] = 0.0; a[1] = 0.0; a[2] = 0.0
+        rr = r[k, 0] ** 2 + r[k, 1] ** 2 + r[k, 2] ** 2
+        _gf_minus(r[k, 0], r[k, 1], r[k, 2], rr, xi, &f[k, 0], a)
+        _tf_minus(r[k, 0], r[k, 1], r[k, 2], rr, xi, &nw[k, 0], &g[k, 0], a)
+        o[k, 0] = -a[0] * INV8PI; o[k, 1] = -a[1] * INV8PI; o[k, 2] = -a[2] * INV8PI
+    return out
+
+
+def real_space(const double[:, ::1] src, const double[:, ::1] f, const double[:, ::1] nw,
+               const double[:, ::1] g, const long[::1] src_id, const long[::1] src_off,
+               const double[:, ::1] trg, const long[::1] trg_id, const long[::1] trg_vi,
+               double xi, double rc, lo, length, bint periodic, double[:, ::1] out):
+    """out[t] += real-space Ewald sum at target t (module docstring), 1/(8 pi) included.
+
+    src (S, 3) SORTED by vesicle id, vesicle v's sources ``src_off[v] .. src_off[v+1]``;
+    f (S, 3) or (0, 3): single-layer density times weight; nw, g (S, 3) or (0, 3): double
+    layer; trg (T, 3), trg_id (T,), trg_vi (T,): index v of the target's own vesicle or -1.
+    lo, length (3,): the box (periodic: the period cell; free: a box holding every point).
+    """
+    cdef Py_ssize_t ns = src.shape[0], nt = trg.shape[0], i
+    cdef bint do_sl = f.shape[0] > 0, do_dl = g.shape[0] > 0
+    if do_sl and f.shape[0] != ns:
+        raise ValueError(f"f has {f.shape[0]} rows, src has {ns}")
+    if do_dl and (g.shape[0] != ns or nw.shape[0] != ns):
+        raise ValueError(f"nw, g have {nw.shape[0]}, {g.shape[0]} rows, src has {ns}")
+    if trg_id.shape[0] != nt or trg_vi.shape[0] != nt or out.shape[0] != nt:
+        raise ValueError("trg, trg_id, trg_vi and out must have the same length")
+    if src_id.shape[0] != ns:
+        raise ValueError("src and src_id must have the same length")
+    if nt == 0 or ns == 0 or not (do_sl or do_dl):
+        return
+    if not (rc > 0.0 and xi > 0.0):
+        raise ValueError(f"rc and xi must be positive, got {rc}, {xi}")
+    lo_np = np.asarray(lo, dtype=np.float64).reshape(3)
+    len_np = np.asarray(length, dtype=np.float64).reshape(3)
+    # cells: side >= rc / SUB, at most ~4 S + 64 of them
+    ncell_np = np.maximum(1, np.floor(len_np / (rc / SUB))).astype(np.int64)
+    while np.prod(ncell_np) > 4 * ns + 64:
+        j = int(np.argmax(ncell_np))
+        ncell_np[j] = max(1, ncell_np[j] // 2)
+    side_np = np.where(len_np > 0, len_np / ncell_np, 1.0)
+    src_np = np.asarray(src)
+    trg_np = np.asarray(trg)
+    if periodic:
+        if np.any(rc >= 0.5 * len_np):
+            raise ValueError(f"periodic real-space cutoff rc = {rc} must be below half the period {len_np}")
+        sw = lo_np + np.mod(src_np - lo_np, len_np)
+        tw = lo_np + np.mod(trg_np - lo_np, len_np)
+    else:
+        sw = src_np
+        tw = trg_np
+    scell = np.clip(np.floor((sw - lo_np) / side_np).astype(np.int64), 0, ncell_np - 1)
+    tcell = np.clip(np.floor((tw - lo_np) / side_np).astype(np.int64), 0, ncell_np - 1)
+    skey = (scell[:, 0] * ncell_np[1] + scell[:, 1]) * ncell_np[2] + scell[:, 2]
+    order = np.argsort(skey, kind="stable")
+    ncells = int(np.prod(ncell_np))
+    cstart_np = np.zeros(ncells + 1, dtype=np.int64)
+    cstart_np[1:] = np.cumsum(np.bincount(skey, minlength=ncells))
+    cdef double[:, ::1] ys = np.ascontiguousarray(sw[order])                 # wrapped, cell order
+    cdef long[::1] sidx = np.ascontiguousarray(order, dtype=np.int64)
+    cdef double[:, ::1] xw = np.ascontiguousarray(tw)
+    cdef long[:, ::1] tc = np.ascontiguousarray(tcell)
+    cdef long[::1] cstart = cstart_np
+    cdef Py_ssize_t t
+    cdef _Box box
+    box.n[0] = ncell_np[0]; box.n[1] = ncell_np[1]; box.n[2] = ncell_np[2]
+    box.L[0] = len_np[0]; box.L[1] = len_np[1]; box.L[2] = len_np[2]
+    box.periodic = periodic
+    box.rc2 = rc * rc
+    box.xi = xi
+    box.ys = &ys[0, 0]
+    box.sidx = &sidx[0]
+    box.cstart = &cstart[0]
+    box.src = &src[0, 0]
+    box.src_id = &src_id[0]
+    box.src_off = &src_off[0]
+    box.f = &f[0, 0] if do_sl else NULL
+    box.nw = &nw[0, 0] if do_dl else NULL
+    box.g = &g[0, 0] if do_dl else NULL
+    tab_np = np.ascontiguousarray(_table(xi, rc))
+    cdef const double[:, :, ::1] tab = tab_np
+    box.tab = &tab[0, 0, 0]
+    box.tinv = TAB_N / rc
+    tab2_np = np.ascontiguousarray(_table_smooth(xi, rc))
+    cdef const double[:, :, ::1] tab2 = tab2_np
+    box.tab2 = &tab2[0, 0, 0]
+    box.tinv2 = TAB2_N / (rc * rc)
+    cdef const double* ptrg = &trg[0, 0]
+    cdef const double* pxw = &xw[0, 0]
+    cdef const long* ptc = &tc[0, 0]
+    cdef double* po = &out[0, 0]
+    with nogil:
+        for t in prange(nt, schedule="dynamic", chunksize=64):
+            _target(&box, ptrg + 3 * t, pxw + 3 * t, ptc + 3 * t, trg_id[t], trg_vi[t], po + 3 * t)
+
+
+def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] psi,
+                 const double[::1] k0, const double[::1] k1, const double[::1] k2,
+                 bint single, bint double, double scale, double complex[:, :, :, ::1] U):
+    """Fourier-space multiplication of the Ewald sum (vesflow/layerpot/ewald.py), one pass:
+
+        U_a = scale Psi [ (k^2 F_a - k_a (k.F)) + i (k^2 (2 (S k)_a + k_a tr S) - 2 k_a (k.S k)) ]
+
+    psi: (n0/2 + 1, n1/2 + 1, n2/2 + 1), Psi at |k| (Psi is even in each component of k);
+    k0, k1, k2: the wave numbers of the modes (-n/2 .. n/2 - 1, times 2 pi / period).
+    F: (m, n0, n1, n2), the single-layer transforms F_0..2 first (if ``single``), then the
+    six components (00, 11, 22, 01, 02, 12) of S (if ``double``); U (3 or more, n0, n1, n2)
+    gets the result in its first 3 components; it may be F itself (every mode is read before
+    it is written).  OpenMP over the first axis.
+    """
+    cdef Py_ssize_t n0 = k0.shape[0], n1 = k1.shape[0], n2 = k2.shape[0]
+    cdef Py_ssize_t i, j, l, o = 3 if single else 0
+    cdef Py_ssize_t h0 = n0 // 2, h1 = n1 // 2, h2 = n2 // 2
+    if n0 % 2 or n1 % 2 or n2 % 2 or psi.shape[0] != h0 + 1 or psi.shape[1] != h1 + 1 or psi.shape[2] != h2 + 1:
+        raise ValueError("even mode counts and psi of shape (n/2 + 1) per axis required")
+    if U.shape[0] < 3 or U.shape[1] != n0 or U.shape[2] != n1 or U.shape[3] != n2:
+        raise ValueError("U must have shape (3,) + psi.shape")
+    if F.shape[0] < o + (6 if double else 0) or F.shape[1] != n0 or F.shape[2] != n1 or F.shape[3] != n2:
+        raise ValueError("F has the wrong shape")
+    cdef double a, b, c, kk, ps
+    cdef double complex f0, f1, f2, kf, s00, s11, s22, s01, s02, s12, q0, q1, q2, tr, ksk, u0, u1, u2
+    with nogil:
+        for i in prange(n0, schedule="static"):
+            for j in range(n1):
+                for l in range(n2):
+                    a = k0[i]
+                    b = k1[j]
+                    c = k2[l]
+                    kk = a * a + b * b + c * c
+                    ps = psi[i - h0 if i >= h0 else h0 - i, j - h1 if j >= h1 else h1 - j,
+                             l - h2 if l >= h2 else h2 - l] * scale
+                    u0 = 0
+                    u1 = 0
+                    u2 = 0
+                    if single:
+                        f0 = F[0, i, j, l]
+                        f1 = F[1, i, j, l]
+                        f2 = F[2, i, j, l]
+                        kf = a * f0 + b * f1 + c * f2
+                        u0 = kk * f0 - a * kf
+                        u1 = kk * f1 - b * kf
+                        u2 = kk * f2 - c * kf
+                    if double:
+                        s00 = F[o, i, j, l]
+                        s11 = F[o + 1, i, j, l]
+                        s22 = F[o + 2, i, j, l]
+                        s01 = F[o + 3, i, j, l]
+                        s02 = F[o + 4, i, j, l]
+                        s12 = F[o + 5, i, j, l]
+                        q0 = s00 * a + s01 * b + s02 * c
+                        q1 = s01 * a + s11 * b + s12 * c
+                        q2 = s02 * a + s12 * b + s22 * c
+                        tr = s00 + s11 + s22
+                        ksk = a * q0 + b * q1 + c * q2
+                        u0 = u0 + 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
+                        u1 = u1 + 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
+                        u2 = u2 + 1j * (kk * (2.0 * q2 + c * tr) - 2.0 * c * ksk)
+                    U[0, i, j, l] = u0 * ps
+                    U[1, i, j, l] = u1 * ps
+                    U[2, i, j, l] = u2 * ps

@@ -1,0 +1,434 @@
+"""Spectral Ewald sums of the Stokeslet and the stresslet (method reference section 5, regime 3).
+
+For sources ``y_s`` (densities ``f_s`` = traction times weight; ``g_s`` with orientations
+``nw_s`` = normal times weight) and targets ``x_t`` this evaluates, with the section 4
+kernels (mu = 1, lambda = 0 stresslet; as :mod:`vesflow.layerpot.far`)::
+
+    u_t = sum_{n, s; (s, n) != (own, 0)} S(x_t - y_s + n L) f_s + D(x_t - y_s + n L) g_s
+
+over the lattice ``n`` of a periodic box (triply periodic; the k = 0 Fourier mode is left
+out: zero mean velocity, i.e. the net force of the box is balanced by a mean pressure
+gradient, the backflow of sedimentation theory), or ``n = 0`` only in free space; "own"
+are the sources of the target's own vesicle (``src_id == trg_id``) at their given position.
+
+Splitting (Hasimoto 1959; Lindbo and Tornberg 2010): ``G = (Lap I - grad grad) r`` with
+``r = phi^R + phi^F``, ``phi^F`` having the Fourier transform::
+
+    phi^F^(k) = -8 pi H(k) / k^4,    H(k) = (1 + k^2 / (4 xi^2)) exp(-k^2 / (4 xi^2))
+
+so ``G^F^ = 8 pi H (k^2 I - k k^T) / k^4`` and, for the stresslet ``T_ijl = -6 r_i r_j r_l / r^5
+= (delta_ij d_l + delta_jl d_i + delta_il d_j) Lap r - 2 d_i d_j d_l r``,
+``T^F^_ijl = i [-k^2 (delta_ij k_l + delta_jl k_i + delta_il k_j) + 2 k_i k_j k_l] phi^F^``.
+The real-space parts (exp(-xi^2 r^2) decay) are summed within a cutoff ``rc`` with cell lists
+(:mod:`vesflow._kernels.ewald`, formulas there); the Fourier part is::
+
+    u^F(x) = (1/V) sum_k [ (k^2 F - k (k.F)) + i (k^2 (2 S k + k tr S) - 2 k (k.S k)) ] Psi(k) e^{i k.x}
+
+with ``Psi = -phi^F^ / (8 pi)``, ``F(k) = sum_s f_s e^{-i k.y_s}``, ``S(k) = sum_s sym(g_s nw_s^T)
+e^{-i k.y_s}`` computed by a type-1 non-uniform FFT and the sum over k by a type-2 NUFFT
+(finufft or ducc0.nufft: the NUFFT's own spreading plays the role of Lindbo and Tornberg's
+Gaussian spreading).
+
+Free space (af Klinteberg, Shamshirgar and Tornberg 2017 use a truncated Green's function on
+a padded grid, after Vico, Greengard and Ferrando 2016; here the same idea with a smooth
+window): the differences ``x - y`` of points in a box of sides ``B_a`` lie in ``(-B_a, B_a)``;
+``phi^F`` times a window ``W`` (1 on that range to the tolerance, 0 beyond ``B_a + w``) is
+periodized with period ``P_a = 2 (B_a + w)`` and ``Psi`` is its discrete Fourier transform on
+the NUFFT grid, computed once per set-up (``-phi^F W / (8 pi)`` sampled on one octant, a
+type-1 DCT since the function is even, times the grid cell volume; stored for k >= 0 only).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, so the periodic sum
+with this ``Psi`` is the free-space ``u^F`` on the box.
+
+Parameters from the requested accuracy ``tol`` (relative to the largest velocity) by the
+error estimates of Lindbo and Tornberg (2010): real space ``~ exp(-xi^2 rc^2)``, Fourier space
+``~ exp(-k_max^2 / (4 xi^2))`` with ``k_max = pi K / P`` (K modes per period P), i.e.
+``xi rc = sqrt(ln(1/tol) + C_REAL)`` and ``k_max = 2 xi sqrt(ln(1/tol) + C_FOURIER)``; the
+cutoff ``rc`` is the one the cost model (:data:`COST`) predicts fastest.  The window of the
+free-space kernel: ``W = prod_a (erf((B_a + w/2 - x_a)/(sqrt 2 sigma)) + erf((B_a + w/2 +
+x_a)/(sqrt 2 sigma)))/2`` with ``sigma k_max = sqrt(2 (ln(1/tol) + C_WINDOW))`` (its
+spectrum has decayed at k_max) and ``w = 2 sqrt 2 sigma sqrt(ln(1/tol) + C_WINDOW)``
+(``1 - W`` below tol on the box range).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import erf
+
+from vesflow._kernels import ewald as _kernels
+from vesflow._kernels import stokes as _stokes
+from vesflow.errors import SceneError
+
+NUFFT_LIBS = ("finufft", "ducc0")
+# margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
+# relative error stays below tol for 1e-4 .. 1e-10 (tests/test_ewald.py)
+C_REAL = 1.0
+C_FOURIER = 1.0
+C_WINDOW = 2.0
+# NUFFT accuracy requested, relative to tol
+NUFFT_EPS_FACTOR = 0.1
+# cost model of the parameter choice, CPU seconds of one thread, measured with
+# benchmarks/ewald.py --calibrate (docs/far_field.md): real space per (target, source) pair
+# inside the cutoff (single layer; about the same again for the double layer) and per
+# own-vesicle pair; NUFFT spreading per point per transform per kernel width cubed; FFT per
+# fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
+# mode per component
+COST = {"pair": 2.2e-8, "own_pair": 5.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 1.0e-8}
+# memory of the Fourier grids of one pass (complex, one array per source component): a
+# parameter choice keeps the double layer's pass (6 components) within it; single and double
+# layer share one pass (9 components) when that fits too
+MAX_GRID_BYTES = 4 * 2 ** 30
+MAX_MODES = MAX_GRID_BYTES // (16 * 6)
+
+
+def _have(lib):
+    try:
+        __import__(lib)
+    except ImportError:
+        return False
+    return True
+
+
+@dataclass(frozen=True)
+class EwaldParams:
+    """Parameters of one Ewald sum.
+
+    ``xi`` splitting, ``rc`` real-space cutoff, ``modes`` NUFFT grid (even, per axis),
+    ``period`` Fourier period per axis, ``lo`` lower corner and ``box`` side lengths of the
+    point box (periodic: the period cell), ``periodic``, ``sigma`` and ``w`` the free-space
+    window (0 when periodic), ``nufft_eps`` the NUFFT accuracy, ``tol`` the request.
+    """
+    xi: float
+    rc: float
+    modes: tuple
+    period: tuple
+    lo: tuple
+    box: tuple
+    periodic: bool
+    sigma: float
+    w: float
+    nufft_eps: float
+    tol: float
+
+    def predicted_seconds(self, nsrc, ntrg, threads=1, ncomp=3):
+        """Cost model (:data:`COST`) of one evaluation with ``ncomp`` source components."""
+        return _predicted(self, nsrc, ntrg, threads, ncomp)
+
+
+def _kernel_width(eps):
+    return min(16, max(2, math.ceil(-math.log10(eps)) + 1))
+
+
+def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
+    vol = float(np.prod(p.box))
+    pairs = ntrg * nsrc * min(1.0, 4.0 / 3.0 * math.pi * p.rc ** 3 / vol) if vol > 0 else ntrg * nsrc
+    m = float(np.prod(p.modes))
+    fine = 3.4 * m
+    wd = _kernel_width(p.nufft_eps) ** 3
+    layers = 1 + (ncomp > 3)
+    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers
+    t += COST["nufft_point"] * wd * (ncomp * nsrc + 3 * ntrg)
+    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (ncomp + 3)
+    t += COST["mode"] * m * (ncomp + 3)
+    return t / max(1, threads)
+
+
+def _modes(period, kmax):
+    # K even with pi K / P >= kmax
+    return tuple(int(2 * math.ceil(P * kmax / (2 * math.pi))) for P in period)
+
+
+def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, ncomp=3):
+    """Ewald parameters for accuracy ``tol`` (module docstring) over ``points`` (n, 3), the
+    sources and targets together; ``period`` None (free space), a number (cube) or 3 numbers.
+    ``nsrc``, ``ntrg``: counts for the cost model (default: half the points each)."""
+    if not (1e-15 < tol < 1.0):
+        raise SceneError(f"Ewald accuracy -ves_far_tol must lie in (1e-15, 1), got {tol}")
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    n = pts.shape[0]
+    nsrc = n // 2 if nsrc is None else nsrc
+    ntrg = n - n // 2 if ntrg is None else ntrg
+    lt = math.log(1.0 / tol)
+    a_real = math.sqrt(lt + C_REAL)
+    a_four = math.sqrt(lt + C_FOURIER)
+    nufft_eps = max(tol * NUFFT_EPS_FACTOR, 1e-14)
+    if period is not None:
+        L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
+        if np.any(~np.isfinite(L)) or np.any(L <= 0):
+            raise SceneError(f"period must be positive, got {period}")
+        lo, box = np.zeros(3), L
+        rc_hi = 0.49 * float(L.min())
+    else:
+        lo = pts.min(axis=0) if n else np.zeros(3)
+        box = (pts.max(axis=0) - lo) if n else np.zeros(3)
+        box = np.maximum(box, 1e-3 * max(float(box.max()), 1e-300))
+        rc_hi = max(float(np.linalg.norm(box)), 1e-300)
+    scale = float(np.cbrt(np.prod(box) / max(nsrc + ntrg, 1)))     # mean point spacing
+    rc_lo = min(rc_hi, max(0.5 * scale, 1e-3 * rc_hi))
+    best = None
+    for rc in np.geomspace(rc_lo, rc_hi, 48):
+        xi = a_real / rc
+        kmax = 2.0 * xi * a_four
+        if period is not None:
+            per, sigma, w = tuple(L), 0.0, 0.0
+        else:
+            aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(box.max())))
+            sigma = math.sqrt(2.0) * aw / kmax
+            w = 2.0 * math.sqrt(2.0) * sigma * aw
+            per = tuple(2.0 * (box + w))
+        modes = _modes(per, kmax)
+        if float(np.prod(modes)) > MAX_MODES:
+            continue
+        p = EwaldParams(xi=float(xi), rc=float(rc), modes=modes, period=tuple(float(x) for x in per),
+                        lo=tuple(float(x) for x in lo), box=tuple(float(x) for x in box),
+                        periodic=period is not None, sigma=float(sigma), w=float(w),
+                        nufft_eps=nufft_eps, tol=float(tol))
+        t = p.predicted_seconds(nsrc, ntrg, threads, ncomp)
+        if best is None or t < best[0]:
+            best = (t, p)
+    if best is None:
+        raise SceneError(f"Ewald sum at -ves_far_tol {tol:g}: every real-space cutoff needs a Fourier "
+                         f"grid above {MAX_MODES} modes ({MAX_GRID_BYTES / 2 ** 30:g} GiB); raise -ves_far_tol "
+                         "or use -ves_far direct")
+    return best[1]
+
+
+def make_params(tol, xi, rc, points, period=None):
+    """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``):
+    for tests of the independence of the result on xi."""
+    lt = math.log(1.0 / tol)
+    kmax = 2.0 * xi * math.sqrt(lt + C_FOURIER)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if period is not None:
+        L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
+        lo, box, per, sigma, w = np.zeros(3), L, L, 0.0, 0.0
+    else:
+        lo = pts.min(axis=0)
+        box = np.maximum(pts.max(axis=0) - lo, 1e-12)
+        aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(box.max())))
+        sigma = math.sqrt(2.0) * aw / kmax
+        w = 2.0 * math.sqrt(2.0) * sigma * aw
+        per = 2.0 * (box + w)
+    return EwaldParams(xi=float(xi), rc=float(rc), modes=_modes(per, kmax), period=tuple(float(x) for x in per),
+                       lo=tuple(float(x) for x in lo), box=tuple(float(x) for x in box),
+                       periodic=period is not None, sigma=float(sigma), w=float(w),
+                       nufft_eps=max(tol * NUFFT_EPS_FACTOR, 1e-14), tol=float(tol))
+
+
+# ---------------------------------------------------------------------------------- k space
+def _kvectors(p):
+    return [2.0 * math.pi / P * (np.arange(n) - n // 2) for P, n in zip(p.period, p.modes)]
+
+
+def phi_smooth(r, xi):
+    """``phi^F(r) = r erf(xi r) + exp(-xi^2 r^2) / (xi sqrt(pi))`` (``d phi^F / dr = erf(xi r)``)."""
+    return r * erf(xi * r) + np.exp(-(xi * r) ** 2) / (xi * math.sqrt(math.pi))
+
+
+def _window_1d(x, half, sigma):
+    s = math.sqrt(2.0) * sigma
+    return 0.5 * (erf((half - x) / s) + erf((half + x) / s))
+
+
+def kernel_psi(p, threads=1):
+    """``Psi(k)`` for ``k_a = 2 pi m_a / P_a``, ``m_a = 0 .. K_a/2`` (Psi is even in each
+    component of k), real (K_0/2 + 1, K_1/2 + 1, K_2/2 + 1)."""
+    k = [2.0 * math.pi / P * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
+    if p.periodic:
+        k2 = k[0][:, None, None] ** 2 + k[1][None, :, None] ** 2 + k[2][None, None, :] ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = k2 / (4.0 * p.xi ** 2)
+            psi = (1.0 + q) * np.exp(-q) / (k2 * k2)
+        psi[k2 == 0.0] = 0.0
+        return psi
+    import scipy.fft
+    # phi^F W sampled at x_j = j P / K, j = 0 .. K/2 per axis (W even; the plane j = K/2,
+    # shared with -K/2, set to 0: W is below tol there); the DFT of the even function on the
+    # full periodic grid is the type-1 DCT of this octant
+    x = [P / n * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
+    r = np.sqrt(x[0][:, None, None] ** 2 + x[1][None, :, None] ** 2 + x[2][None, None, :] ** 2)
+    phi = phi_smooth(r, p.xi)
+    del r
+    for a in range(3):
+        wa = _window_1d(x[a], p.box[a] + 0.5 * p.w, p.sigma)
+        wa[-1] = 0.0
+        shape = [1, 1, 1]
+        shape[a] = -1
+        phi *= wa.reshape(shape)
+    cell = float(np.prod([P / n for P, n in zip(p.period, p.modes)]))
+    psi = scipy.fft.dctn(phi, type=1, workers=threads, overwrite_x=True)
+    psi *= -cell / (8.0 * math.pi)
+    return np.ascontiguousarray(psi)
+
+
+# ---------------------------------------------------------------------------------- NUFFT
+class _Nufft:
+    """Type 1 (points -> modes, e^{-i k.x}) and type 2 (modes -> points, e^{+i k.x}) transforms
+    on fixed source and target points (scaled to [0, 2 pi)), finufft or ducc0.nufft."""
+
+    def __init__(self, lib, modes, src01, trg01, eps, threads):
+        if lib not in NUFFT_LIBS:
+            raise SceneError(f"NUFFT library {lib!r} is not one of {', '.join(NUFFT_LIBS)}")
+        self.lib, self.modes, self.eps, self.threads = lib, tuple(int(m) for m in modes), eps, threads
+        self.src, self.trg = src01, trg01
+        self._plans = {}
+
+    def _finufft_plan(self, kind, ntr):
+        key = (kind, ntr)
+        if key not in self._plans:
+            import finufft
+            # upsampling 1.25 is 2-3x faster than finufft's default here (docs/far_field.md)
+            # but its kernel width is capped at 16: 2.0 below eps 1e-9
+            plan = finufft.Plan(kind, self.modes, n_trans=ntr, eps=self.eps, isign=-1 if kind == 1 else 1,
+                                dtype="complex128", nthreads=self.threads, modeord=0,
+                                upsampfac=1.25 if self.eps >= 1e-9 else 2.0)
+            pts = self.src if kind == 1 else self.trg
+            plan.setpts(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+                        np.ascontiguousarray(pts[:, 2]))
+            self._plans[key] = plan
+        return self._plans[key]
+
+    def _ducc_plan(self, kind):
+        if kind not in self._plans:
+            import ducc0
+            pts = self.src if kind == 1 else self.trg
+            self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),
+                                                 grid_shape=self.modes, epsilon=max(self.eps, 3e-13),
+                                                 nthreads=self.threads, periodicity=2 * math.pi,
+                                                 fft_order=False)
+        return self._plans[kind]
+
+    def type1(self, c):
+        """``F_k = sum_s c_s e^{-i k.y_s}``: c (m, S) complex -> (m, n1, n2, n3)."""
+        m = c.shape[0]
+        if self.lib == "finufft":
+            return self._finufft_plan(1, m).execute(np.ascontiguousarray(c))
+        return self._ducc_plan(1).nu2u(points=np.ascontiguousarray(c), forward=True)
+
+    def type2(self, U):
+        """``u_t = sum_k U_k e^{+i k.x_t}``: U (m, n1, n2, n3) -> (m, T) complex."""
+        m = U.shape[0]
+        if self.lib == "finufft":
+            return self._finufft_plan(2, m).execute(np.ascontiguousarray(U))
+        return self._ducc_plan(2).u2nu(grid=np.ascontiguousarray(U), forward=False)
+
+
+def _sym6(nw, g):
+    """Components (00, 11, 22, 01, 02, 12) of sym(g nw^T), (6, S)."""
+    s = np.empty((6, g.shape[0]))
+    s[0] = g[:, 0] * nw[:, 0]
+    s[1] = g[:, 1] * nw[:, 1]
+    s[2] = g[:, 2] * nw[:, 2]
+    s[3] = 0.5 * (g[:, 0] * nw[:, 1] + g[:, 1] * nw[:, 0])
+    s[4] = 0.5 * (g[:, 0] * nw[:, 2] + g[:, 2] * nw[:, 0])
+    s[5] = 0.5 * (g[:, 1] * nw[:, 2] + g[:, 2] * nw[:, 1])
+    return s
+
+
+class EwaldSum:
+    """Ewald sum over fixed sources ``src`` (S, 3) with ids ``src_id`` and targets ``trg`` (T, 3)
+    with ids ``trg_id`` (module docstring); ``period`` None (free space), a number or 3 numbers;
+    ``params`` an :class:`EwaldParams` (default: :func:`choose_params` for ``tol``);
+    ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`)."""
+
+    def __init__(self, src, src_id, trg, trg_id, tol=1e-8, period=None, params=None, nufft=None,
+                 threads=None, double_layer=False):
+        self.src = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
+        self.trg = np.ascontiguousarray(trg, dtype=np.float64).reshape(-1, 3)
+        self.src_id = np.ascontiguousarray(src_id, dtype=np.int64).reshape(-1)
+        self.trg_id = np.ascontiguousarray(trg_id, dtype=np.int64).reshape(-1)
+        if self.src_id.shape[0] != self.src.shape[0] or self.trg_id.shape[0] != self.trg.shape[0]:
+            raise ValueError("src_id / trg_id must have one id per point")
+        self.threads = _stokes.max_threads() if threads is None else max(1, int(threads))
+        self.period = period
+        if params is None:
+            params = choose_params(tol, np.concatenate([self.src, self.trg]), period, self.src.shape[0],
+                                   self.trg.shape[0], self.threads, 9 if double_layer else 3)
+        self.params = p = params
+        if nufft is None:
+            nufft = DEFAULT_NUFFT if _have(DEFAULT_NUFFT) else next((n for n in NUFFT_LIBS if _have(n)), None)
+            if nufft is None:
+                raise SceneError("the Ewald far field needs finufft or ducc0 (pip install finufft)")
+        self.nufft_lib = nufft
+        # sources sorted by vesicle id; index of each target's own vesicle (-1: none)
+        sid = self.src_id
+        self._perm = None
+        if sid.size and np.any(sid[1:] < sid[:-1]):
+            self._perm = np.argsort(sid, kind="stable")
+            sid = sid[self._perm]
+        self._src_sorted = self.src if self._perm is None else np.ascontiguousarray(self.src[self._perm])
+        self._sid_sorted = np.ascontiguousarray(sid)
+        ids, starts = np.unique(sid, return_index=True)
+        self._src_off = np.append(starts, sid.size).astype(np.int64)
+        trg_vi = np.full(self.trg.shape[0], -1, dtype=np.int64)
+        if ids.size:
+            vi = np.minimum(np.searchsorted(ids, self.trg_id), ids.size - 1)
+            trg_vi = np.where(ids[vi] == self.trg_id, vi, -1).astype(np.int64)
+        self._trg_vi = trg_vi
+        # NUFFT points in [0, 2 pi)
+        lo = np.asarray(p.lo)
+        per = np.asarray(p.period)
+        if p.periodic:
+            s01 = 2 * math.pi * np.mod(self.src - lo, per) / per
+            t01 = 2 * math.pi * np.mod(self.trg - lo, per) / per
+        else:
+            s01 = 2 * math.pi * (self.src - lo) / per
+            t01 = 2 * math.pi * (self.trg - lo) / per
+        # np.mod can return the period itself for tiny negative inputs
+        s01[s01 >= 2 * math.pi] = 0.0
+        t01[t01 >= 2 * math.pi] = 0.0
+        self._nufft = _Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
+        self._psi = kernel_psi(p, self.threads)
+        self._k = _kvectors(p)
+
+    def _sorted(self, a):
+        return a if self._perm is None else np.ascontiguousarray(a[self._perm])
+
+    def real_space(self, f_w=None, nw=None, g=None):
+        """Real-space part (incl. the own-vesicle subtraction), (T, 3)."""
+        p = self.params
+        out = np.zeros((self.trg.shape[0], 3))
+        empty = np.zeros((0, 3))
+        f = empty if f_w is None else self._sorted(np.ascontiguousarray(f_w, dtype=np.float64))
+        n_ = empty if g is None else self._sorted(np.ascontiguousarray(nw, dtype=np.float64))
+        g_ = empty if g is None else self._sorted(np.ascontiguousarray(g, dtype=np.float64))
+        box = p.period if p.periodic else tuple(np.asarray(p.box) * (1 + 1e-12) + 1e-300)
+        _kernels.real_space(self._src_sorted, f, n_, g_, self._sid_sorted, self._src_off,
+                            self.trg, self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box,
+                            bool(p.periodic), out)
+        return out
+
+    def fourier(self, f_w=None, nw=None, g=None):
+        """Fourier-space part over all sources, (T, 3)."""
+        comps = []
+        if f_w is not None:
+            comps.append(np.asarray(f_w, dtype=np.float64).T)
+        if g is not None:
+            comps.append(_sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
+        c = np.ascontiguousarray(np.concatenate(comps, axis=0), dtype=np.complex128)
+        F = self._nufft.type1(c)
+        del c
+        # in place: each mode's components are read before its three outputs are written
+        _kernels.kspace_apply(F, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
+                              1.0 / float(np.prod(self.params.period)), F)
+        U = F[:3]
+        return self._nufft.type2(U).real.T.copy()
+
+    def evaluate(self, f_w=None, nw=None, g=None):
+        """Single layer of ``f_w`` plus double layer of ``g`` (orientations ``nw``), (T, 3)."""
+        if (nw is None) != (g is None):
+            raise ValueError("double layer: give both nw and g, or neither")
+        out = np.zeros((self.trg.shape[0], 3))
+        if self.trg.shape[0] == 0 or self.src.shape[0] == 0 or (f_w is None and g is None):
+            return out
+        out = self.real_space(f_w, nw, g)
+        if f_w is not None and g is not None and 9 * 16 * float(np.prod(self.params.modes)) > MAX_GRID_BYTES:
+            out += self.fourier(f_w=f_w)                 # two passes: the grids of one fit the memory
+            out += self.fourier(nw=nw, g=g)
+        else:
+            out += self.fourier(f_w, nw, g)
+        return out
+
+
+DEFAULT_NUFFT = "ducc0"
