@@ -242,7 +242,7 @@ p = 8
 horizon = 1.0
 dt = 0.9
 [output]
-every = 0.25
+every = 1.0
 [[vesicle]]
 shape = "ellipsoid"
 axes = [1.0, 1.0, 2.5]
@@ -253,6 +253,64 @@ bending_modulus = 1.0
     assert inv["rejected"].get("error_estimate", 0) >= 1
     assert not rec.steps[0][2] and rec.steps[0][1] == 0.9        # the first try was the stiff one
     assert min(r[1] for r in rec.steps if r[2]) < 0.1             # and adaptivity went far below it
+
+
+# ------------------------------------------------------------------ frames at the output times
+RELAX = """
+title = "relaxation, frames every 1"
+[discretization]
+p = 6
+[time]
+horizon = 20.0
+dt = 0.05
+[output]
+every = 1.0
+[[vesicle]]
+shape = "prolate"
+reduced_volume = 0.9
+bending_modulus = 1.0
+"""
+
+
+def test_frames_land_on_the_output_times():
+    """Issue 15: steps are shortened to end on each output time, and a shortened step keeps
+    the proposal of the step it replaced.  Measured before (frames at the first step end past
+    each output time): 7 frames (t = 0, 1.15, 2.04, 3.82, 7.38, 14.5, 20), 18 accepted and 2
+    rejected steps; after: 21 frames at t = 0, 1, ..., 20, 33 accepted, 2 rejected (the steps
+    of the relaxed shape would grow to 5.7, the frames cap them at 1)."""
+    run, rec = simulate(RELAX)
+    inv = invariants("prolate v = 0.9 relaxing, T = 20, frames every 1, p = 6", run, rec)
+    times = np.array([f["time"] for f in rec.frames])
+    assert np.abs(times - np.arange(21)).max() < 1e-12
+    assert inv["accepted"] <= 18 + 21
+    dts = np.array([r[1] for r in rec.steps if r[2]])
+    assert dts.max() == pytest.approx(1.0)                   # the frames cap the steps, nothing less
+    assert np.all(dts[-10:] == pytest.approx(1.0))           # the landing steps did not shrink the next ones
+
+
+def test_restart_continues_the_frame_sequence(tmp_path):
+    """A run stopped by -ts_max_steps between output times and restarted writes the frames of
+    the uninterrupted run at the same times and ends in the same state (to the GMRES tolerance); restarted with another
+    -ves_output_every it goes on at the next multiple of the new interval."""
+    from vesflow import cli
+    from vesflow.io import read_checkpoint, read_output
+    scene = tmp_path / "relax.toml"
+    scene.write_text(RELAX.replace("horizon = 20.0", "horizon = 6.0"))
+    whole, part, same, other = (tmp_path / f"{n}.h5" for n in ("whole", "part", "same", "other"))
+    assert cli.main(["run", str(scene), "-o", str(whole)]) == 0
+    assert cli.main(["run", str(scene), "-o", str(part), "-ts_max_steps", "14"]) == 0
+    t_stop = float(read_checkpoint(str(part))["time"])
+    assert cli.main(["run", "--restart", str(part), "-o", str(same), "-ts_max_steps", "1000"]) == 0
+    assert cli.main(["run", "--restart", str(part), "-o", str(other), "-ts_max_steps", "1000",
+                     "-ves_output_every", "0.5"]) == 0
+    a, b, c = read_output(str(whole)), read_output(str(same)), read_output(str(other))
+    print(f"\n[stability] restart at t = {t_stop:.4g}: frames {[float(t) for t in c.time]}")
+    assert 1 < t_stop < 2
+    assert list(a.time) == list(b.time) == [float(k) for k in range(7)]
+    assert np.abs(np.asarray(read_checkpoint(str(whole))["coeffs"]) -
+                  np.asarray(read_checkpoint(str(same))["coeffs"])).max() < 1e-8   # GMRES rtol: the
+    # uninterrupted run did not drop its lagged LU factors at t_stop (measured 4.7e-10)
+    assert np.abs(c.time - [0, 1, 2, 2.5, 3, 3.5, 4, 4.5, 5, 5.5, 6]).max() < 1e-12
 
 
 # ------------------------------------------------------------------ long runs

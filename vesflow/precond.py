@@ -116,8 +116,9 @@ class _PerVesicle:
         return [self.finish_block(block_at(A0, SMb, op.dt), op) for A0, SMb in self.block_parts(op)]
 
     def finish_block(self, A, op):
-        """Hook applied to each assembled block before its factorization."""
-        return A
+        """Each assembled block, before its factorization: its constant-tension mode regularized
+        (`regularize_tension_mode`; it depends on dt through the velocity block's scale)."""
+        return regularize_tension_mode(A, op.C)
 
     def apply(self, pc, x, y):
         xa = x.getArray(readonly=True).reshape(self.op.N, self.op.block)
@@ -131,8 +132,38 @@ class _PerVesicle:
                            f"rebuilt {self.rebuilds} times\n")
 
 
+def regularize_tension_mode(B, C):
+    """The self block B (4C x 4C: velocity 3C component-major, then tension C; the constant
+    tension at 3C, the n = 0 divergence row at 3C) with its constant-tension mode regularized:
+    B + c e e^T, e = e_{3C}, c < 0 (docs/dynamics.md, "Spheres and near-spheres").
+
+    A constant tension on a closed surface exerts 2 H sigma n, and the single layer of n
+    vanishes on and off a closed surface: on a sphere (H constant) that column is zero, and the
+    row combination "n = 0 divergence minus the flux of the velocity rows" is zero too (its left
+    null vector).  Near a sphere the block's smallest singular value is O(1 - v) (measured,
+    p = 8: 2.5e-4 at v = 0.999, 2.2e-3 at 0.99, 8.8e-3 at 0.95); it is the only small one (the
+    next, tension degree 1, is ~0.1).  The tension Schur complement -div (B_uu)^-1 B_u,sigma
+    is negative (semi)definite (a tension does negative work on the area), so adding c < 0 at
+    (3C, 3C) keeps it definite for every shape and makes a sphere's block regular; c is the
+    scale of that Schur complement in the next tension mode, estimated from the block:
+    |c| = 3 max|B_d0,u| max|B_u,sigma| / max|B_uu| (its degree-1 eigenvalue is 2.7-5.4 times the
+    product, measured over R, kappa, lambda, mu, dt).  The cost: the preconditioned operator
+    gets the eigenvalue 1 / (1 + c gamma), gamma = (B^-1)_{3C,3C}, in this one mode (0 for a
+    sphere, where the operator itself is singular: the sphere's constant tension is free).
+    """
+    i0 = 3 * C
+    scale = np.abs(B[i0, :i0]).max() * np.abs(B[:i0, i0:]).max() / max(np.abs(B[:i0, :i0]).max(), 1e-300)
+    out = np.array(B, dtype=float, copy=True)
+    out[i0, i0] -= TENSION_MODE_WEIGHT * scale
+    return out
+
+
+TENSION_MODE_WEIGHT = 3.0
+
+
 class BlockJacobi(_PerVesicle):
-    """Inverse of the block diagonal: each vesicle with itself (the paper's better choice)."""
+    """Inverse of the block diagonal: each vesicle with itself (the paper's better choice), its
+    constant-tension mode regularized (`regularize_tension_mode`)."""
 
     def block_parts(self, op):
         return map_vesicles(op.self_block_parts, range(op.N))
@@ -151,8 +182,7 @@ class SphereSpectral(_PerVesicle):
     column is zero) and the mean normal velocity enters only the n = 0 divergence row.  Left
     as is, the LU "solves" with an exploding or arbitrary tension mode and GMRES reports
     convergence after one iteration at a true residual of 0.99 (measured, 2 vesicles, p = 8).
-    We add the largest entry of the n = 0 divergence row at (divergence n = 0, tension n = 0),
-    which maps the mean-divergence residual to the constant tension and makes it invertible.
+    `regularize_tension_mode` makes it invertible, as for BlockJacobi.
     """
 
     def __init__(self, lag=None):
@@ -176,10 +206,7 @@ class SphereSpectral(_PerVesicle):
                 lp = _SelfOnly(SelfOperators(S.coeffs, op.p, op.lp.q_self, True, op.lp.want_double, op.params.mu),
                                op.lp.want_double, np.array([key[2]]))
                 prm = VesicleParams([key[1]], [key[2]], [0.0], op.params.mu)
-                A0, SMb = StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0)
-                i0 = 3 * op.C                                    # tension, n = 0 (a divergence row: no dt)
-                A0[i0, i0] += np.abs(A0[i0]).max()
-                self.spheres[key] = (A0, SMb)
+                self.spheres[key] = StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0)
             out.append(self.spheres[key])
         return out
 

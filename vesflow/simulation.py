@@ -95,7 +95,11 @@ class Run:
         else:
             self.area0, self.volume0 = np.asarray(checkpoint["area0"]), np.asarray(checkpoint["volume0"])
             self.t, self.dt = float(checkpoint["time"]), float(checkpoint["dt"])
-            self.next_frame, self.n_accepted = float(checkpoint["next_frame"]), int(checkpoint["n_accepted"])
+            self.n_accepted = int(checkpoint["n_accepted"])
+            # the frame sequence continues at the next multiple of `every` (the checkpoint's
+            # next_frame unless the restart changes -ves_output_every): a checkpoint is written
+            # after the frame of its time, if that time is an output time
+            self.next_frame = next_output_time(self.t, self.every)
             self.sigma, self.u = np.asarray(checkpoint["sigma"]), np.asarray(checkpoint["u"])
             if int(checkpoint["has_last"]):
                 from .stepper import Solution
@@ -195,6 +199,16 @@ class Run:
         if self.writer.last_checkpoint_time != self.t:
             self.writer.write_checkpoint(self.checkpoint(), force=True)
 
+    def _landing_dt(self):
+        """The step to take from t and the time it lands on (or None): the adaptive proposal
+        self.dt, shortened to end exactly at the next output time or the horizon when it would
+        pass it (or stretched by at most 1% to reach it, so no sliver steps are left)."""
+        target = min(self.next_frame, self.horizon)
+        gap = target - self.t
+        if self.dt >= gap / (1.0 + _STRETCH):
+            return gap, target
+        return self.dt, None
+
     def _next_dt(self, dt, err):
         o = self.opts
         if o["adapt"] == "none":
@@ -220,7 +234,7 @@ class Run:
         while self.t < self.horizon * (1 - 1e-12):
             if max_steps is not None and self.n_accepted >= max_steps:
                 break
-            dt = min(self.dt, self.horizon - self.t)
+            dt, target = self._landing_dt()
             q_used = (self.q_self, self.q_near)
             sol, reason, its, err = self._attempt(dt)
             accepted = sol is not None
@@ -232,12 +246,16 @@ class Run:
                 rejects_in_row = 0
                 self.counts["accepted"] += 1
                 self.n_accepted += 1
+                if target is not None:           # landed on an output time or the horizon
+                    st.time = target
                 self.t = st.time
                 self.u, self.sigma = sol.u, sol.sigma
                 if self.opts["quad_tol"] > 0:
                     self._adapt_quadrature()
-                self.dt = self._next_dt(dt, err)
-                if self.t >= self.next_frame - 1e-12 or self.t >= self.horizon * (1 - 1e-12):
+                proposal = self._next_dt(dt, err)
+                # a step shortened to land keeps the proposal of the step it replaced
+                self.dt = max(self.dt, proposal) if dt < self.dt else proposal
+                if self.t >= self.next_frame - _time_tol(self.t) or self.t >= self.horizon * (1 - 1e-12):
                     self._frame()
             else:
                 self.counts["rejected"] += 1
@@ -314,7 +332,7 @@ class Run:
 
     def _write_frame(self):
         if self.writer is None:
-            self.next_frame += self.every
+            self.next_frame = next_output_time(self.t, self.every)
             return
         p = self.p
         S = self.stepper.surface
@@ -324,8 +342,7 @@ class Run:
             time=self.t, points=S.points(), coefficients=S.coeffs, tension=Tp.synth(self.sigma),
             area=S.area(), volume=S.volume(), centroid=S.centroid(), bending_energy=S.bending_energy(kappa),
             velocity=np.moveaxis(Tp.synth(self.u), -2, -1), poles=S.pole_points())
-        while self.next_frame <= self.t + 1e-12:
-            self.next_frame += self.every
+        self.next_frame = next_output_time(self.t, self.every)
         self._flush_steps()
         self.writer.write_timings(self.timers.as_dict())
         self.writer.write_checkpoint(self.checkpoint())
@@ -355,6 +372,21 @@ def check_available(scene, opts):
         raise NumericalFailure(f"-ves_far {opts['far']}: a periodic domain ([domain]) needs the Ewald far "
                                "field; use -ves_far ewald or auto")
     _backend(opts["far"])
+
+
+_STRETCH = 0.01     # a step may grow by this fraction to land on an output time
+
+
+def _time_tol(t):
+    return 1e-9 * max(1.0, abs(t))
+
+
+def next_output_time(t, every):
+    """The first multiple k * every (k integer) after t (by more than the rounding of t):
+    frames are due at 0, every, 2 every, ..., whatever steps were taken (also after a restart,
+    or a restart with another -ves_output_every)."""
+    k = np.floor(t / every + _time_tol(t / every)) + 1.0
+    return float(k * every)
 
 
 def _step_q(q, err, tol, lo, hi):

@@ -126,7 +126,7 @@ class Stepper:
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
         n = surface.n_vesicles * op.block
-        A = PETSc.Mat().createPython([n, n], op, comm=PETSc.COMM_SELF)
+        A = PETSc.Mat().createPython([n, n], tension_gauge(surface, op), comm=PETSc.COMM_SELF)
         A.setUp()
         b = A.createVecRight()
         x = A.createVecLeft()
@@ -165,7 +165,8 @@ class Stepper:
             observe(its, failed=not relres <= max(1e-6, 1e4 * rtol), seconds=t_solve)
         if not relres <= max(1e-6, 1e4 * rtol):
             raise ConvergenceError(f"GMRES reported {_reason_name(reason)} after {its} iterations but the true "
-                                   f"relative residual is {relres:.2e} (a singular preconditioner?)",
+                                   f"relative residual is {relres:.2e} (a singular preconditioner?): "
+                                   + residual_modes(op, r.getArray(), b.norm(), x.getArray()),
                                    reason=reason, iterations=its)
         u, s = op.split(x.getArray().copy())
         self.lp_last = lp
@@ -190,6 +191,94 @@ class Stepper:
         self.time += dt
         self.last = sol
         return sol
+
+
+SPHERE_TOL = 1e-6     # reduced volume above 1 - SPHERE_TOL: a sphere (as correction.py)
+
+
+def tension_gauge(surface, op):
+    """The operator with the constant tension of every sphere fixed (or op itself if none).
+
+    On a sphere a constant tension exerts no force (2 H sigma n with H constant; the single
+    layer of n vanishes on and off a closed surface): its column of the operator is zero and
+    the n = 0 divergence row is the flux of the velocity rows times 2/R, so the system is
+    singular, and GMRES breaks down on the quadrature-size inconsistency of the right side
+    (measured: DIVERGED_BREAKDOWN, two sedimenting spheres at p = 8).  The gauge term
+    c sigma_0 added to the n = 0 divergence row (c < 0, the scale of the sphere's tension Schur
+    complement in degree 1, 0.4 / (R mu alpha)) fixes it: since that row is redundant on a
+    sphere, the solution is the one with sigma_0 = 0 up to that inconsistency, and nothing else
+    changes (the sphere's constant tension has no effect).  It is the rank-one update the
+    preconditioners apply to every block (precond.regularize_tension_mode), here applied to the
+    operator of spheres only."""
+    v = surface.reduced_volume()
+    spheres = np.nonzero(v > 1.0 - SPHERE_TOL)[0]
+    if len(spheres) == 0:
+        return op
+    R = surface.effective_radius()[spheres]
+    c = -0.4 / (R * op.params.mu * op.params.alpha[spheres])
+    return GaugedOperator(op, spheres * op.block + 3 * op.C, c)
+
+
+class GaugedOperator:
+    """MatPython context: op plus c_k x[i_k] at rows i_k (the constant tension of spheres); the
+    preconditioners reach the StepOperator's attributes (self_block, N, ...) through it."""
+
+    def __init__(self, op, rows, c):
+        self.op, self.rows, self.c = op, np.asarray(rows), np.asarray(c, dtype=float)
+
+    def __getattr__(self, name):
+        return getattr(self.op, name)
+
+    def apply(self, x):
+        y = self.op.apply(x)
+        y[self.rows] += self.c * np.asarray(x)[self.rows]
+        return y
+
+    def mult(self, mat, x, y):
+        self.op.n_mult += 1
+        y.setArray(self.apply(x.getArray(readonly=True)))
+
+    def view(self, mat, viewer):
+        self.op.view(mat, viewer)
+        viewer.printfASCII(f"  constant tension fixed on {len(self.rows)} spheres\n")
+
+
+def _split_by_degree(op, a):
+    """{(vesicle, "velocity" | "tension", degree n): norm} of a vector in the system's layout
+    (the tension part of a residual holds the divergence rows)."""
+    ns = sph.index_tables(op.p)[0][:op.C]
+    av = np.asarray(a).reshape(op.N, op.block)
+    vel = av[:, :3 * op.C].reshape(op.N, 3, op.C)
+    ten = av[:, 3 * op.C:]
+    out = {}
+    for n in range(op.p + 1):
+        sel = ns == n
+        for v in range(op.N):
+            out[(v, "velocity", n)] = np.sqrt((vel[v][:, sel] ** 2).sum())
+            out[(v, "tension", n)] = np.sqrt((ten[v][sel] ** 2).sum())
+    return out, np.linalg.norm(vel), np.linalg.norm(ten)
+
+
+def residual_modes(op, r, bnorm, x=None):
+    """Which mode failed: the residual r (relative to the right side's norm) in its velocity
+    and divergence rows and its largest (vesicle, rows, degree n) part, and the largest part of
+    the solution x, e.g. "residual: velocity rows 1.0e+00, divergence rows 2.0e-06, largest
+    vesicle 1 velocity rows degree 0 (6.4e-01); solution: largest vesicle 0 tension degree 0
+    (100% of its norm: the constant-tension mode)"."""
+    b = max(bnorm, 1e-300)
+    parts, nv, nt = _split_by_degree(op, r)
+    (v, rows, n), worst = max(parts.items(), key=lambda kv: kv[1])
+    rows = "divergence" if rows == "tension" else rows
+    out = (f"residual: velocity rows {nv / b:.1e}, divergence rows {nt / b:.1e}, largest vesicle {v} {rows} "
+           f"rows degree {n} ({worst / b:.1e})")
+    if x is not None:
+        parts, _, _ = _split_by_degree(op, x)
+        total = np.sqrt(sum(w ** 2 for w in parts.values()))
+        (v, kind, n), big = max(parts.items(), key=lambda kv: kv[1])
+        what = ": the constant-tension mode" if (kind, n) == ("tension", 0) else ""
+        out += (f"; solution: largest vesicle {v} {kind} degree {n} "
+                f"({100 * big ** 2 / max(total ** 2, 1e-300):.0f}% of its norm{what})")
+    return out
 
 
 def _default_pc():
