@@ -10,6 +10,8 @@ command of the issue, `render OUT.h5 --frames DIR` (PNGs and the MP4, 960x540). 
 whatever vesflow is importable (PYTHONPATH=/path/to/other/checkout times another version:
 only the keywords that version knows are passed).  Coverage: the fraction of pixels that
 differ from the white background, outside the label boxes when the renderer reports them.
+cpu: user + system time of this process and its children (ffmpeg, worker processes), less
+sensitive than the wall time to other jobs on a shared machine.
 """
 import argparse
 import inspect
@@ -59,12 +61,13 @@ def main():
                 kw = {}
                 if "workers" in known:
                     kw["workers"] = workers
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), os.times()
                 res = R.render(h5, movie=Path(tmp) / "pair.mp4", frames_dir=Path(tmp) / "png", size=(960, 540), **kw)
-                wall = time.perf_counter() - t0
+                wall, c1 = time.perf_counter() - t0, os.times()
+                cpu = sum(c1[:4]) - sum(c0[:4])          # this process and its children (ffmpeg, workers)
                 cov = [coverage(f, getattr(res, "layout", None)) for f in res.frames]
                 print(f"workers {getattr(res, 'workers', 1)}  camera {getattr(res, 'camera_mode', 'fit'):6s}  "
-                      f"{wall:6.1f} s  ({1e3 * wall / len(res.frames):5.1f} ms/frame)  vesicle coverage "
+                      f"{wall:6.1f} s  ({1e3 * wall / len(res.frames):5.1f} ms/frame)  cpu {cpu:6.1f} s  vesicle coverage "
                       f"min {100 * min(cov):.2f}%  mean {100 * np.mean(cov):.2f}%  "
                       f"(load average {os.getloadavg()[0]:.2f})", flush=True)
 
