@@ -64,3 +64,16 @@ def test_map_vesicles_keeps_order_and_uses_no_more_threads_than_free_cores(monke
     assert threads.free_cores() == 1
     assert threads.map_vesicles(work, range(3)) == [0, 1, 4]
     assert names == {threading.current_thread().name}
+
+
+def test_openmp_threads_follow_the_idle_cores(monkeypatch):
+    from vesflow._kernels import series
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    try:
+        monkeypatch.setattr(os, "getloadavg", lambda: (0.1, 0.0, 0.0))
+        assert threads.adapt_openmp() == 2 and series.get_max_threads() == 2
+        monkeypatch.setattr(os, "getloadavg", lambda: (3.0, 0.0, 0.0))
+        assert threads.adapt_openmp() == 1 and series.get_max_threads() == 1
+    finally:
+        series.set_num_threads(threads.openmp_threads())

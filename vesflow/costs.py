@@ -24,8 +24,9 @@ import numpy as np
 
 BANDWIDTH = 2e10                 # bytes/s streamed by the batched self GEMV (measured 2-5e10)
 FORCE_S = (1.0e-3, 3.0e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
-SELF_SETUP_S = (0.69, 4.2)       # seconds per vesicle to assemble S at p = 16, exponent in p
-PC_SETUP_S = (2.5, 4.5)          # seconds per vesicle to build and factor its 4C block at p = 16
+SELF_SETUP_S = (0.21, 3.6)       # seconds per vesicle to assemble S at p = 16, exponent in p
+PC_SETUP_S = (0.45, 4.2)         # seconds per vesicle to build and factor its 4C block at p = 16
+# (issue 16, CPU seconds: S 0.0058 / 0.056 / 0.21 and block 0.0073 / 0.126 / 0.45 at p = 6 / 12 / 16)
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 
 
@@ -155,3 +156,22 @@ def _threads():
         return int(stokes.max_threads())
     except Exception:
         return 1
+
+
+def pc_rebuild_iterations(n_vesicles, p, q, double_layer=False, near_pairs=0, far_backend="direct",
+                          far_eps=1e-8):
+    """The block preconditioner's rebuild (blocks and LU) in GMRES iterations of the same
+    system, by the model above: what vesflow.precond's reuse rule weighs the aging blocks'
+    extra iterations against.  A model, not a clock, so that the rebuilds (and with them the
+    iterates) are the same in every run of the same input, restarts included."""
+    from .layerpot import far as farmod
+    N, C = n_vesicles, (p + 1) ** 2 - 1
+    M, Mq = 2 * p * (p + 1), 2 * q * (q + 1)
+    n_ops = 2 if double_layer else 1
+    t_it = N * (FORCE_S[0] + FORCE_S[1] * p ** 3) + N * (n_ops * (3 * C) ** 2 + (4 * C) ** 2) * 8 / BANDWIDTH
+    if N > 1:
+        t_direct, t_fmm = farmod.predicted_seconds(N * Mq, N * M, far_eps, threads=1)
+        t_it += t_fmm if far_backend == "fmm" else t_direct * (N - 1) / N
+        t_it += near_pairs * NEAR_EVALS * Mq * farmod.DIRECT_SECONDS_PER_PAIR * n_ops
+    t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
+    return t_pc / t_it

@@ -8,11 +8,14 @@ and apply one dense LU per vesicle.  Each block is A(dt) = A0 - dt [S Mb 0; 0 0]
 (`StepOperator.self_block_parts`): the parts are built once and kept, and a block for another
 dt costs a sum and an LU.
 
-Reuse, driven by the GMRES iterations (Stepper.solve reports each solve's iterations and
-seconds through `observe`): the parts are rebuilt from the current geometry once the
-iterations the aging blocks cost beyond the first solve after the last rebuild, summed over
-the solves since, have cost as much time as the rebuild took (the ski-rental rule: never
-more than twice the best fixed schedule), at once when a solve needs more than
+Reuse, driven by the GMRES iterations (Stepper.solve reports each solve's iterations through
+`observe`): the parts are rebuilt from the current geometry once the iterations the aging
+blocks cost beyond the first solve after the last rebuild, summed over the solves since,
+cost as much as a rebuild (the ski-rental rule: never more than twice the best fixed
+schedule).  The rebuild's price in iterations comes from the cost model
+(`costs.pc_rebuild_iterations`, e.g. ~40 for two vesicles at p = 12), not from a clock, so
+that every run of the same input rebuilds at the same solves and takes the same iterates
+(restarts included).  Rebuilt at once when a solve needs more than
 `REFRESH_FACTOR` x the first + `REFRESH_SLACK` iterations or fails, after -ves_pc_lag solves
 at most, and when the number of vesicles or p changed.  The LU factors of a block are reused
 for any dt within a factor `DT_MATCH` of the dt they were built for (the two half steps of
@@ -21,7 +24,6 @@ step doubling, the steps after).
 from __future__ import annotations
 
 import contextlib
-import time
 
 import numpy as np
 from scipy.linalg import lu_factor, lu_solve
@@ -51,23 +53,21 @@ class _PerVesicle:
         self.uses = 0              # solves since the last rebuild
         self.stale = False
         self.rebuilds = 0
-        self.build_seconds = 0.0   # wall time of the last rebuild (parts and first factors)
-        self.excess_seconds = 0.0  # time of the iterations beyond base_its since then
+        self.rebuild_its = np.inf  # a rebuild's cost in iterations (costs.pc_rebuild_iterations)
+        self.excess_its = 0        # iterations beyond base_its since the last rebuild
 
     # ------------------------------------------------------------------ reuse policy
     def observe(self, its, failed=False, seconds=None):
-        """The iterations (and wall seconds) of the solve just done with these blocks."""
+        """The iterations of the solve just done with these blocks (seconds: for the log only)."""
         if failed:
             self.stale = True
             return
         if self.base_its is None:
             self.base_its = its
             return
-        if its > REFRESH_FACTOR * self.base_its + REFRESH_SLACK:
-            self.stale = True
-        elif seconds is not None and its > 0:
-            self.excess_seconds += (its - self.base_its) * seconds / its
-            self.stale = self.excess_seconds >= self.build_seconds
+        self.excess_its += max(its - self.base_its, 0)
+        self.stale = (its > REFRESH_FACTOR * self.base_its + REFRESH_SLACK
+                      or self.excess_its >= self.rebuild_its)
 
     def _max_uses(self):
         if self.lag is None:
@@ -84,19 +84,28 @@ class _PerVesicle:
         fresh_geometry = self.parts_lp is not op.lp
         if (self.parts is None or key != self.parts_key or self.stale
                 or (fresh_geometry and self.uses >= self._max_uses())):
-            t0 = time.perf_counter()
             timers = getattr(op.lp, "timers", None) or _NoTimers()
             with timers.stage("pc_blocks"):
                 self.parts = self.block_parts(op)
             self.parts_key, self.parts_lp = key, op.lp
             self.factors, self.base_its, self.uses, self.stale = [], None, 0, False
-            self.excess_seconds = 0.0
+            self.excess_its = 0
+            self.rebuild_its = self.rebuild_cost(op)
             self.rebuilds += 1
             self.lu = self._factors_for(op)
-            self.build_seconds = time.perf_counter() - t0
         else:
             self.lu = self._factors_for(op)
         self.uses += 1
+
+    @staticmethod
+    def rebuild_cost(op):
+        """A rebuild in GMRES iterations of this system (costs.pc_rebuild_iterations)."""
+        from .costs import pc_rebuild_iterations
+        lp = op.lp
+        far = getattr(getattr(lp, "far", None), "backend", "direct")
+        return pc_rebuild_iterations(op.N, op.p, getattr(lp, "q_far", 2 * op.p), bool(lp.want_double),
+                                     getattr(lp, "n_near_pairs", 0), far,
+                                     getattr(getattr(lp, "settings", None), "fmm_eps", 1e-8))
 
     def _factors_for(self, op):
         dt = op.dt

@@ -21,6 +21,7 @@ from .layerpot.evaluator import LayerPotentials, Settings
 from .operator import StepOperator
 from .solver import configure_ksp
 from .surface import Surface
+from .threads import adapt_openmp
 from .timing import Timers
 
 
@@ -123,6 +124,7 @@ class Stepper:
         """Velocity and tension at the current (or given) configuration for a step dt."""
         from petsc4py import PETSc
         surface = self.surface if surface is None else surface
+        adapt_openmp()
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
         n = surface.n_vesicles * op.block

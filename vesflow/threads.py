@@ -1,7 +1,8 @@
 """One thread policy for the OpenMP kernels and BLAS (issue 16; docs/benchmarks.md, "Threads").
 
-- OpenMP (the compiled kernels: far-field sums, near pairs, series at points): the number of
-  threads is OMP_NUM_THREADS (the HPC convention; the Makefile exports 2), and idle threads
+- OpenMP (the compiled kernels: far-field sums, near pairs, series at points): at most
+  OMP_NUM_THREADS threads (the HPC convention; the Makefile exports 2), fewer while the load
+  average says the other cores are busy (`adapt_openmp`, once per solve), and idle threads
   sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE unless the user set it): a spinning
   thread takes the core that another process, or our own main thread, needs.
 - Per-vesicle set-up (self operators, preconditioner blocks) runs on the same number of
@@ -59,6 +60,16 @@ def free_cores():
     except OSError:
         return ncpu
     return max(1, min(ncpu, int(ncpu - load + 1.0 + 0.5)))
+
+
+def adapt_openmp():
+    """Set the OpenMP kernels' threads to min(OMP_NUM_THREADS, free_cores()) for what follows
+    (Stepper.solve calls it once per solve): on a machine whose other cores are busy, threads
+    that wait at the end of every parallel loop for a descheduled sibling only add time."""
+    from ._kernels import series
+    n = min(openmp_threads(), free_cores())
+    series.set_num_threads(n)
+    return n
 
 
 def map_vesicles(fn, items):

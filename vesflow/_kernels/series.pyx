@@ -75,3 +75,21 @@ cdef void _one(const double[:, :, :, :, ::1] padded, long v, double th, double p
             dtheta[i, k] += f1c * cm + f1s * sm
             dphi[i, k] += m * (f0s * cm - f0c * sm)
     free(lam)
+
+
+# ---------------------------------------------------------------------------------------
+# the OpenMP thread count of this process (vesflow.threads sets it per step)
+# ---------------------------------------------------------------------------------------
+cimport openmp
+
+
+def set_num_threads(int n):
+    """omp_set_num_threads(n) for the calling thread's later parallel regions (every kernel of
+    vesflow._kernels shares the one libgomp of the process)."""
+    if n < 1:
+        raise ValueError(f"set_num_threads: n = {n} must be >= 1")
+    openmp.omp_set_num_threads(n)
+
+
+def get_max_threads():
+    return openmp.omp_get_max_threads()
