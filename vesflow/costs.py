@@ -24,9 +24,9 @@ import numpy as np
 
 BANDWIDTH = 2e10                 # bytes/s streamed by the batched self GEMV (measured 2-5e10)
 FORCE_S = (1.0e-3, 3.0e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
-SELF_SETUP_S = (0.21, 3.6)       # seconds per vesicle to assemble S at p = 16, exponent in p
-PC_SETUP_S = (0.45, 4.2)         # seconds per vesicle to build and factor its 4C block at p = 16
-# (issue 16, CPU seconds: S 0.0058 / 0.056 / 0.21 and block 0.0073 / 0.126 / 0.45 at p = 6 / 12 / 16)
+SELF_SETUP_S = (0.134, 3.8)      # seconds per vesicle to assemble S at p = 16, exponent in p
+PC_SETUP_S = (0.29, 4.1)         # seconds per vesicle to build and factor its 4C block at p = 16
+# (issue 16, CPU seconds: S 0.0035 / 0.034 / 0.134 and block + LU 0.011 / 0.086 / 0.29 at p = 6 / 12 / 16)
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 
 

@@ -99,7 +99,7 @@ class StepOperator:
                            f"coupling {self.coupling}, double layer {'on' if self.lp.want_double else 'off'}\n")
 
     # ------------------------------------------------------------------ dense self blocks (preconditioner)
-    def force_matrices(self, v):
+    def force_matrices(self, v, q=None):
         """The per-vesicle linear maps of the step as dense matrices, from the step's geometry.
 
         Returns (Mb (3C, 3C), Mt (3C, C), Div (C, 3C)): coefficients of the linearized bending
@@ -110,8 +110,9 @@ class StepOperator:
         the derivatives of u and sigma are exact there, and only the Laplacian of the linearized
         mean curvature needs the degree-q transforms, batched over the 3C columns.
         """
-        g, Tf, C = self.geo, self.Tf, self.C
-        Q = sph.basis_on_grid(self.p, self.q_force)                  # dict of (C, npts)
+        q = self.q_force if q is None else q
+        g, Tf, C = self.surface.geometry(q), sph.transform(self.p, q), self.C
+        Q = sph.basis_on_grid(self.p, q)                             # dict of (C, npts)
         n = g.normal[v]                                              # (npts, 3)
         Xt, Xp = g.Xup_t[v], g.Xup_p[v]
         # Laplace-Beltrami of each basis function (componentwise Laplace of u), (C, npts)
@@ -131,12 +132,12 @@ class StepOperator:
         Div = Tf.analysis(dv).reshape(3 * C, C).T
         return Mb, Mt, Div
 
-    def self_block_parts(self, v):
+    def self_block_parts(self, v, q=None):
         """(A0, SMb) with self_block(v) = A0 - dt [SMb 0; 0 0]: the dt-independent part and the
         single layer of the linearized bending force, so that a block for another dt costs a
         sum (the preconditioner keeps both across the solves of a step and of later steps)."""
         C = self.C
-        Mb, Mt, Div = self.force_matrices(v)
+        Mb, Mt, Div = self.force_matrices(v, q)
         S = self.lp.self_ops.single[v]
         A0 = np.zeros((self.block, self.block))
         A0[:3 * C, 3 * C:] = -(S @ Mt)

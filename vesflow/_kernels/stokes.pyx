@@ -287,3 +287,57 @@ def stresslet_sum_pairs(const double[:, ::1] src, const double[:, ::1] nw, const
 def max_threads():
     """Number of OpenMP threads the kernels use (``omp_get_max_threads()``, set by OMP_NUM_THREADS)."""
     return openmp.omp_get_max_threads()
+
+
+# ---------------------------------------------------------------------------------------
+# kernel tables of the singular (self) quadrature (vesflow.layerpot.singular)
+# ---------------------------------------------------------------------------------------
+def self_kernel_tables(const double[:, ::1] target, const double[:, :, ::1] x,
+                       const double[:, :, ::1] xt, const double[:, :, ::1] xp,
+                       const double[::1] lam_w, double[:, :, ::1] single, double[:, :, ::1] double_):
+    """The 6 components a <= b (order 00, 01, 02, 11, 12, 22) of the symmetric kernels times the
+    Graham-Sloan weights, for J targets and the rotated surfaces x (J, 3, M) with their theta /
+    phi derivatives xt, xp (J, 3, M):
+
+        single[j, ab, m] = (1/(8 pi)) (delta_ab / r + r_a r_b / r^3) W lam_w[m]
+        double[j, ab, m] = -(3/(4 pi)) r_a r_b (r . (x_t x x_p)) / r^5 lam_w[m]
+
+    with r = target[j] - x[j, :, m] and W = |x_t x x_p|.  Either output may have shape
+    (0, 0, 0) to skip it.  Writes (does not accumulate).  OpenMP over targets."""
+    cdef Py_ssize_t J = x.shape[0], M = x.shape[2], j, m
+    cdef bint want_s = single.shape[0] > 0, want_d = double_.shape[0] > 0
+    if x.shape[1] != 3 or xt.shape[0] != J or xp.shape[0] != J or target.shape[0] != J or lam_w.shape[0] != M:
+        raise ValueError("self_kernel_tables: inconsistent shapes")
+    if (want_s and (single.shape[0] != J or single.shape[1] != 6 or single.shape[2] != M)) or \
+       (want_d and (double_.shape[0] != J or double_.shape[1] != 6 or double_.shape[2] != M)):
+        raise ValueError("self_kernel_tables: outputs must be (J, 6, M)")
+    cdef double r0, r1, r2, n0, n1, n2, rr, rinv, w, s1, s3, d5
+    with nogil:
+        for j in prange(J, schedule="static"):
+            for m in range(M):
+                r0 = target[j, 0] - x[j, 0, m]
+                r1 = target[j, 1] - x[j, 1, m]
+                r2 = target[j, 2] - x[j, 2, m]
+                n0 = xt[j, 1, m] * xp[j, 2, m] - xt[j, 2, m] * xp[j, 1, m]
+                n1 = xt[j, 2, m] * xp[j, 0, m] - xt[j, 0, m] * xp[j, 2, m]
+                n2 = xt[j, 0, m] * xp[j, 1, m] - xt[j, 1, m] * xp[j, 0, m]
+                rr = r0 * r0 + r1 * r1 + r2 * r2
+                rinv = 1.0 / sqrt(rr)
+                if want_s:
+                    w = sqrt(n0 * n0 + n1 * n1 + n2 * n2) * lam_w[m]
+                    s1 = INV8PI * rinv * w
+                    s3 = s1 * rinv * rinv
+                    single[j, 0, m] = s1 + s3 * r0 * r0
+                    single[j, 1, m] = s3 * r0 * r1
+                    single[j, 2, m] = s3 * r0 * r2
+                    single[j, 3, m] = s1 + s3 * r1 * r1
+                    single[j, 4, m] = s3 * r1 * r2
+                    single[j, 5, m] = s1 + s3 * r2 * r2
+                if want_d:
+                    d5 = M3_4PI * (r0 * n0 + r1 * n1 + r2 * n2) * rinv * rinv * rinv * rinv * rinv * lam_w[m]
+                    double_[j, 0, m] = d5 * r0 * r0
+                    double_[j, 1, m] = d5 * r0 * r1
+                    double_[j, 2, m] = d5 * r0 * r2
+                    double_[j, 3, m] = d5 * r1 * r1
+                    double_[j, 4, m] = d5 * r1 * r2
+                    double_[j, 5, m] = d5 * r2 * r2

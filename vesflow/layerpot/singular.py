@@ -22,14 +22,15 @@ import numpy as np
 from scipy.special import eval_legendre
 
 from .. import sph
+from .._kernels import stokes
 
 INV8PI = 1.0 / (8.0 * np.pi)
 DL_COEF = -3.0 / (4.0 * np.pi)
-# the 6 components a <= b of a symmetric 3x3 kernel, which of them are diagonal, and the
-# index of component (a, b) among them
+# the 6 components a <= b of a symmetric 3x3 kernel (the order of stokes.self_kernel_tables)
+# and the index of component (a, b) among them
 SYM = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
-DIAG = [0, 3, 5]
 FULL = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+NONE = np.empty((0, 0, 0))
 
 
 @lru_cache(maxsize=16)
@@ -97,28 +98,15 @@ class SelfOperators:
         kinds = [w for w, on in (("S", want_single), ("D", want_double)) if on]
         rows = {w: np.empty((Tp.nlat, Tp.nlon, 6, K)) for w in kinds}   # R_t^T Q^T (Lambda W K) per target
         phis = Tp.phi
-        ia, ib = (tuple(int(a) for a in x) for x in SYM)
+        ker = {w: np.empty((len(phis), 6, Tq.npts)) for w in kinds}      # kernel x weights (stokes.self_kernel_tables)
         for i0, theta0 in enumerate(Tp.theta):
             # rotated surface, one per target on this latitude: (J, 3, Mq) with derivatives
             Xr = sph.rotate_y(sph.rotate_z(np.broadcast_to(X, (len(phis), 3, C)), p, phis[:, None]), p, theta0)
             x, xt, xp = Tq.synth_first(Xr)
-            cr = np.stack([xt[:, 1] * xp[:, 2] - xt[:, 2] * xp[:, 1],
-                           xt[:, 2] * xp[:, 0] - xt[:, 0] * xp[:, 2],
-                           xt[:, 0] * xp[:, 1] - xt[:, 1] * xp[:, 0]], axis=1)      # n W, (J, 3, Mq)
-            r = Xt_grid[i0][:, :, None] - x                                          # (J, 3, Mq)
-            rinv = 1.0 / np.sqrt(np.einsum("jkm,jkm->jm", r, r))
-            rr = np.empty((len(phis), 6, r.shape[-1]))                              # r_a r_b, a <= b
-            for c in range(6):
-                np.multiply(r[:, ia[c]], r[:, ib[c]], out=rr[:, c])
+            stokes.self_kernel_tables(np.ascontiguousarray(Xt_grid[i0]), x, xt, xp, lam_w,
+                                      ker["S"] if want_single else NONE, ker["D"] if want_double else NONE)
             for which in kinds:
-                if which == "S":
-                    wgt = np.sqrt(np.einsum("jkm,jkm->jm", cr, cr)) * lam_w           # Lambda W / sin(theta)
-                    ker = rr * (INV8PI * rinv ** 3 * wgt)[:, None]
-                    ker[:, DIAG] += (INV8PI * rinv * wgt)[:, None]
-                else:
-                    rn = np.einsum("jkm,jkm->jm", r, cr)                            # (r . n) W
-                    ker = rr * (DL_COEF * rn * rinv ** 5 * lam_w)[:, None]
-                R = Tq.synth_transpose(ker, full=True)                              # (J, 6, K)
+                R = Tq.synth_transpose(ker[which], full=True)                       # (J, 6, K)
                 rows[which][i0] = _rotate_back(R, p, theta0, phis)
         out = []
         for which in ("S", "D"):
