@@ -59,9 +59,12 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
     act = np.arange(N)
     errs = np.zeros((N, 2))
     # a sphere (reduced volume 1) cannot trade area for volume: (3.20) is singular there and
-    # Newton turns round-off into shape noise; restore its volume by a dilation instead
+    # Newton turns round-off into shape noise.  The only shape with its area and volume is the
+    # sphere of volume V0: project the points radially onto a sphere about the centroid (the
+    # tangential positions, i.e. the parameterization, are kept), then dilate to V0
     sphere = 6.0 * np.sqrt(np.pi) * V0 / A0 ** 1.5 > 1.0 - 1e-6
     if sphere.any():
+        c[sphere] = project_onto_sphere(c[sphere], p, q)
         V = _area_volume(Geometry(c[sphere], p, q))[1]
         c[sphere, :, 1:] *= (V0[sphere] / V)[:, None, None] ** (1.0 / 3.0)   # about the mean point
         act = np.nonzero(~sphere)[0]
@@ -97,3 +100,20 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
         its += 1
         geo = Geometry(c[act], p, q)
     return (c[0], its, errs[0]) if single else (c, its, errs)
+
+
+def project_onto_sphere(coeffs, p, q=None):
+    """Each surface (N, 3, C) moved radially onto the sphere about its volume centroid with its
+    mean distance from it: X -> x_c + R (X - x_c) / |X - x_c| on the q-grid, projected to degree p.
+    The projection of a degree-p sphere with any parameterization is a sphere to the truncation
+    error of that parameterization; the volume is fixed afterwards by the caller."""
+    q = 2 * p if q is None else q
+    T = sph.transform(p, q)
+    geo = Geometry(coeffs, p, q)
+    V = geo.integrate(np.einsum("...k,...k->...", geo.X, geo.normal)) / 3.0
+    xc = geo.integrate(0.5 * geo.X ** 2 * geo.normal) / V[:, None]                 # (N, 3)
+    d = geo.X - xc[:, None, :]
+    r = np.linalg.norm(d, axis=-1)
+    R = geo.integrate(r) / geo.dA.sum(axis=-1)
+    Y = xc[:, None, :] + R[:, None, None] * d / r[..., None]
+    return T.analysis(np.moveaxis(Y, -1, -2))
