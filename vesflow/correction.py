@@ -60,13 +60,11 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
     errs = np.zeros((N, 2))
     # a sphere (reduced volume 1) cannot trade area for volume: (3.20) is singular there and
     # Newton turns round-off into shape noise.  The only shape with its area and volume is the
-    # sphere of volume V0: project the points radially onto a sphere about the centroid (the
-    # tangential positions, i.e. the parameterization, are kept), then dilate to V0
-    sphere = 6.0 * np.sqrt(np.pi) * V0 / A0 ** 1.5 > 1.0 - 1e-6
+    # sphere of volume V0: replace it by that sphere about its centroid, with the standard
+    # parameterization (the minimizer of the reparameterization energy: degree 1 only), then
+    # dilate to V0 against quadrature error
+    c, sphere = restore_spheres(c, p, A0, V0, q)
     if sphere.any():
-        c[sphere] = project_onto_sphere(c[sphere], p, q)
-        V = _area_volume(Geometry(c[sphere], p, q))[1]
-        c[sphere, :, 1:] *= (V0[sphere] / V)[:, None, None] ** (1.0 / 3.0)   # about the mean point
         act = np.nonzero(~sphere)[0]
     geo = Geometry(c, p, q)
     if sphere.any():
@@ -102,18 +100,34 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
     return (c[0], its, errs[0]) if single else (c, its, errs)
 
 
-def project_onto_sphere(coeffs, p, q=None):
-    """Each surface (N, 3, C) moved radially onto the sphere about its volume centroid with its
-    mean distance from it: X -> x_c + R (X - x_c) / |X - x_c| on the q-grid, projected to degree p.
-    The projection of a degree-p sphere with any parameterization is a sphere to the truncation
-    error of that parameterization; the volume is fixed afterwards by the caller."""
+def restore_spheres(coeffs, p, area0, volume0, q=None):
+    """The vesicles (N, 3, C) whose target (area0, volume0) is a sphere (reduced volume above
+    1 - 1e-6) replaced by the sphere of volume0 about their centroid (sphere_at_centroid, then
+    a dilation against its quadrature error); returns (coeffs, mask of those vesicles)."""
+    c = np.array(coeffs, dtype=float)
     q = 2 * p if q is None else q
-    T = sph.transform(p, q)
+    N = c.shape[0]
+    A0 = np.broadcast_to(np.asarray(area0, dtype=float), (N,))
+    V0 = np.broadcast_to(np.asarray(volume0, dtype=float), (N,))
+    sphere = 6.0 * np.sqrt(np.pi) * V0 / A0 ** 1.5 > 1.0 - 1e-6
+    if sphere.any():
+        c[sphere] = sphere_at_centroid(c[sphere], p, q)
+        V = _area_volume(Geometry(c[sphere], p, q))[1]
+        c[sphere, :, 1:] *= (V0[sphere] / V)[:, None, None] ** (1.0 / 3.0)   # about the mean point
+    return c, sphere
+
+
+def sphere_at_centroid(coeffs, p, q=None):
+    """The standard sphere (make_shape("sphere")) at the volume centroid of each surface
+    (N, 3, C), with the same volume.  A locked sphere (stepper.sphere_constraints) is carried
+    rigidly and its membrane tank-treads: the grid rotates with it, and reusing the
+    preconditioner's factors across steps (-ves_pc_lag) then mismatches the stiff locking term
+    (measured: GMRES 391 iterations and 2 failed solves, sphere in shear, p = 8); the standard
+    parameterization keeps every step's block the same."""
+    from .shapes import make_shape
+    q = 2 * p if q is None else q
     geo = Geometry(coeffs, p, q)
     V = geo.integrate(np.einsum("...k,...k->...", geo.X, geo.normal)) / 3.0
-    xc = geo.integrate(0.5 * geo.X ** 2 * geo.normal) / V[:, None]                 # (N, 3)
-    d = geo.X - xc[:, None, :]
-    r = np.linalg.norm(d, axis=-1)
-    R = geo.integrate(r) / geo.dA.sum(axis=-1)
-    Y = xc[:, None, :] + R[:, None, None] * d / r[..., None]
-    return T.analysis(np.moveaxis(Y, -1, -2))
+    xc = geo.integrate(0.5 * geo.X ** 2 * geo.normal) / V[:, None]
+    R = np.cbrt(3.0 * V / (4.0 * np.pi))
+    return np.stack([make_shape("sphere", p, radius=R[k], center=xc[k]) for k in range(len(V))])

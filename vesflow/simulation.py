@@ -13,7 +13,7 @@ import time as _time
 import numpy as np
 
 from . import collision, sph
-from .correction import correct_area_volume
+from .correction import correct_area_volume, restore_spheres
 from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
 from .layerpot.evaluator import Settings
@@ -120,6 +120,8 @@ class Run:
                 one = st.coeffs.copy()
                 st.coeffs, st.time, st.last = saved[0].copy(), saved[1], saved[2]
                 s1 = st.step(0.5 * dt)
+                if self.opts["correct"] == "area_volume":   # a sphere stays the standard sphere
+                    st.coeffs = restore_spheres(st.coeffs, self.p, self.area0, self.volume0)[0]
                 s2 = st.step(0.5 * dt)
                 its += s1.its + s2.its
                 sol = s2
