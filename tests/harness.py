@@ -78,3 +78,26 @@ center = [{-dx}, 0.0, {dz}]
 {ves}
 center = [{dx}, 0.0, {-dz}]
 """
+
+
+def stimson_jeffery(distance, radius=1.0, n_terms=None):
+    """The drag correction lambda = F / (6 pi mu a U) of two equal rigid spheres (radius a)
+    translating with equal velocity U along their line of centres, centre distance `distance`
+    (Stimson & Jeffery 1926, Proc. R. Soc. A 111, 110; the exact series in bispherical
+    coordinates, cosh alpha = distance / (2 a)):
+
+        lambda = 4/3 sinh(alpha) sum_{n>=1} n (n+1) / ((2n-1)(2n+3))
+                 [1 - (4 sinh^2((n+1/2) alpha) - (2n+1)^2 sinh^2(alpha))
+                      / (2 sinh((2n+1) alpha) + (2n+1) sinh(2 alpha))].
+
+    Each sphere under the same force F then falls at U = U_Stokes / lambda.  The bracket is
+    evaluated with e^{-(2n+1) alpha} factored out (no overflow); terms decay like
+    n^2 e^{-(2n+1) alpha}, summed until below 1e-17 of the sum (or n_terms)."""
+    alpha = np.arccosh(distance / (2.0 * radius))
+    n = np.arange(1, (n_terms or int(60.0 / alpha) + 10) + 1, dtype=float)
+    k = 2.0 * n + 1.0
+    e = np.exp(-k * alpha)
+    one_minus = (((2.0 + k * np.sinh(2 * alpha) + k ** 2 * np.sinh(alpha) ** 2) * e - 2.0 * e * e)
+                 / (1.0 - e * e + k * np.sinh(2 * alpha) * e))
+    terms = n * (n + 1) / ((2 * n - 1) * (2 * n + 3)) * one_minus
+    return 4.0 / 3.0 * np.sinh(alpha) * terms.sum()

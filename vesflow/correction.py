@@ -59,11 +59,12 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
     act = np.arange(N)
     errs = np.zeros((N, 2))
     # a sphere (reduced volume 1) cannot trade area for volume: (3.20) is singular there and
-    # Newton turns round-off into shape noise; restore its volume by a dilation instead
-    sphere = 6.0 * np.sqrt(np.pi) * V0 / A0 ** 1.5 > 1.0 - 1e-6
+    # Newton turns round-off into shape noise.  The only shape with its area and volume is the
+    # sphere of volume V0: replace it by that sphere about its centroid, with the standard
+    # parameterization (the minimizer of the reparameterization energy: degree 1 only), then
+    # dilate to V0 against quadrature error
+    c, sphere = restore_spheres(c, p, A0, V0, q)
     if sphere.any():
-        V = _area_volume(Geometry(c[sphere], p, q))[1]
-        c[sphere, :, 1:] *= (V0[sphere] / V)[:, None, None] ** (1.0 / 3.0)   # about the mean point
         act = np.nonzero(~sphere)[0]
     geo = Geometry(c, p, q)
     if sphere.any():
@@ -97,3 +98,36 @@ def correct_area_volume(coeffs, p, area0, volume0, tol=1e-6, max_its=5, q=None):
         its += 1
         geo = Geometry(c[act], p, q)
     return (c[0], its, errs[0]) if single else (c, its, errs)
+
+
+def restore_spheres(coeffs, p, area0, volume0, q=None):
+    """The vesicles (N, 3, C) whose target (area0, volume0) is a sphere (reduced volume above
+    1 - 1e-6) replaced by the sphere of volume0 about their centroid (sphere_at_centroid, then
+    a dilation against its quadrature error); returns (coeffs, mask of those vesicles)."""
+    c = np.array(coeffs, dtype=float)
+    q = 2 * p if q is None else q
+    N = c.shape[0]
+    A0 = np.broadcast_to(np.asarray(area0, dtype=float), (N,))
+    V0 = np.broadcast_to(np.asarray(volume0, dtype=float), (N,))
+    sphere = 6.0 * np.sqrt(np.pi) * V0 / A0 ** 1.5 > 1.0 - 1e-6
+    if sphere.any():
+        c[sphere] = sphere_at_centroid(c[sphere], p, q)
+        V = _area_volume(Geometry(c[sphere], p, q))[1]
+        c[sphere, :, 1:] *= (V0[sphere] / V)[:, None, None] ** (1.0 / 3.0)   # about the mean point
+    return c, sphere
+
+
+def sphere_at_centroid(coeffs, p, q=None):
+    """The standard sphere (make_shape("sphere")) at the volume centroid of each surface
+    (N, 3, C), with the same volume.  A locked sphere (stepper.sphere_constraints) is carried
+    rigidly and its membrane tank-treads: the grid rotates with it, and reusing the
+    preconditioner's factors across steps (-ves_pc_lag) then mismatches the stiff locking term
+    (measured: GMRES 391 iterations and 2 failed solves, sphere in shear, p = 8); the standard
+    parameterization keeps every step's block the same."""
+    from .shapes import make_shape
+    q = 2 * p if q is None else q
+    geo = Geometry(coeffs, p, q)
+    V = geo.integrate(np.einsum("...k,...k->...", geo.X, geo.normal)) / 3.0
+    xc = geo.integrate(0.5 * geo.X ** 2 * geo.normal) / V[:, None]
+    R = np.cbrt(3.0 * V / (4.0 * np.pi))
+    return np.stack([make_shape("sphere", p, radius=R[k], center=xc[k]) for k in range(len(V))])

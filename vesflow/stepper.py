@@ -59,6 +59,9 @@ class Stepper:
         self.time = 0.0
         self.last = None            # last Solution: initial guess of the next solve
         self.extra_force = None     # hook: (surface, geometry) -> traction on the force grid (repulsion)
+        self.lock_spheres = True    # a sphere's normal velocity of degree >= 2 held at 0 (sphere_constraints)
+        self.cond_estimate = None   # of the last solve's preconditioned operator (_condition_estimate)
+        self.cond_max = 0.0         # the largest of them so far
 
     @property
     def surface(self):
@@ -128,7 +131,7 @@ class Stepper:
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
         n = surface.n_vesicles * op.block
-        A = PETSc.Mat().createPython([n, n], tension_gauge(surface, op), comm=PETSc.COMM_SELF)
+        A = PETSc.Mat().createPython([n, n], sphere_constraints(surface, op, self.lock_spheres), comm=PETSc.COMM_SELF)
         A.setUp()
         b = A.createVecRight()
         x = A.createVecLeft()
@@ -139,6 +142,7 @@ class Stepper:
             x.set(0.0)
         ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
         configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context)
+        ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (below)
         with self.timers.stage("setup"):
             ksp.setUp()
         t_solve = time.perf_counter()
@@ -148,6 +152,9 @@ class Stepper:
         reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
         pc = ksp.getPC()
         observe = getattr(pc.getPythonContext() if pc.getType() == "python" else None, "observe", None)
+        self.cond_estimate = _condition_estimate(ksp)
+        if np.isfinite(self.cond_estimate):
+            self.cond_max = max(self.cond_max, self.cond_estimate)
         rtol = ksp.getTolerances()[0]
         ksp.destroy()
         if reason < 0:
@@ -196,34 +203,73 @@ class Stepper:
 
 
 SPHERE_TOL = 1e-6     # reduced volume above 1 - SPHERE_TOL: a sphere (as correction.py)
+LOCK_STIFFNESS = 1e3  # K of the locking force -K (mu / R) (u.n)_{n >= 2} n on spheres
 
 
-def tension_gauge(surface, op):
-    """The operator with the constant tension of every sphere fixed (or op itself if none).
+def sphere_constraints(surface, op, lock=True):
+    """The operator with the two constraints of a sphere (reduced volume above 1 - SPHERE_TOL),
+    or op itself if there is none (docs/dynamics.md, "Spheres and near-spheres", "Locked shape").
 
-    On a sphere a constant tension exerts no force (2 H sigma n with H constant; the single
-    layer of n vanishes on and off a closed surface): its column of the operator is zero and
-    the n = 0 divergence row is the flux of the velocity rows times 2/R, so the system is
-    singular, and GMRES breaks down on the quadrature-size inconsistency of the right side
-    (measured: DIVERGED_BREAKDOWN, two sedimenting spheres at p = 8).  The gauge term
-    c sigma_0 added to the n = 0 divergence row (c < 0, the scale of the sphere's tension Schur
-    complement in degree 1, 0.4 / (R mu alpha)) fixes it: since that row is redundant on a
-    sphere, the solution is the one with sigma_0 = 0 up to that inconsistency, and nothing else
-    changes (the sphere's constant tension has no effect).  It is the rank-one update the
-    preconditioners apply to every block (precond.regularize_tension_mode), here applied to the
-    operator of spheres only."""
+    Gauge.  On a sphere a constant tension exerts no force (2 H sigma n with H constant; the
+    single layer of n vanishes on and off a closed surface): its column is zero and the n = 0
+    divergence row is the flux of the velocity rows times 2/R, so the system is singular and
+    GMRES broke down on the quadrature-size inconsistency of the right side (measured:
+    DIVERGED_BREAKDOWN, two sedimenting spheres, p = 8).  The term c sigma_0 added to the n = 0
+    divergence row (c < 0, the scale of a sphere's tension Schur complement in degree 1,
+    0.4 / (R mu alpha); the rank-one update of precond.regularize_tension_mode) picks the
+    solution with sigma_0 = 0: that row is redundant on a sphere, nothing physical changes.
+
+    Lock (lock=True).  A sphere of fixed area and volume cannot deform; the linearized
+    constraint div u = 0 lets it (its normal velocity of degree 2 in a strain is
+    60 / (23 lambda + 32) a n.E.n, tests/test_dynamics.py), and that instantaneous motion
+    changes its stresslet to (80 - 115 lambda) / (23 lambda + 32) times a rigid sphere's -5
+    (0.13 of it at lambda = 1): two spheres sedimenting along their line of centres fall 1.8%
+    (3 radii apart) and 2.8% (2.5) faster than rigid spheres.  The locked limit of a
+    quasi-spherical vesicle (excess area -> 0, tension -> infinity) keeps its normal velocity of
+    degree >= 2 at zero; the implicit force -K (mu / R) P_{n >= 2}(u . n) n, K = LOCK_STIFFNESS,
+    imposes it to 1 / (1 + K m), m ~ 0.1 the sphere's normal mobility: rigid-sphere
+    hydrodynamics for the translation, while the membrane still tank-treads (div-free
+    tangential motion)."""
     v = surface.reduced_volume()
     spheres = np.nonzero(v > 1.0 - SPHERE_TOL)[0]
     if len(spheres) == 0:
         return op
-    R = surface.effective_radius()[spheres]
-    c = -0.4 / (R * op.params.mu * op.params.alpha[spheres])
-    return GaugedOperator(op, spheres * op.block + 3 * op.C, c)
+    R = surface.effective_radius()
+    c = -0.4 / (R[spheres] * op.params.mu * op.params.alpha[spheres])
+    K = np.zeros(op.N)
+    if lock:
+        K[spheres] = LOCK_STIFFNESS * op.params.mu / R[spheres]
+        _install_lock(op, K)
+    return SphereConstrainedOperator(op, spheres * op.block + 3 * op.C, c)
 
 
-class GaugedOperator:
-    """MatPython context: op plus c_k x[i_k] at rows i_k (the constant tension of spheres); the
-    preconditioners reach the StepOperator's attributes (self_block, N, ...) through it."""
+def _install_lock(op, K):
+    """op.membrane_force (used by op.apply, op.self_block and the explicit coupling) plus the
+    locking force -K_v P_{n >= 2}(u . n) n of each vesicle v (K_v = 0: none)."""
+    from .operator import StepOperator
+    low = sph.index_tables(op.p)[0][:op.C] <= 1
+    op.lock_vesicle = None                       # set by SphereConstrainedOperator.self_block
+
+    def membrane_force(u, sigma, geo=None, kappa=None):
+        out = StepOperator.membrane_force(op, u, sigma, geo, kappa)
+        if geo is None:
+            k, normal = K[:, None], op.geo.normal
+        else:
+            k, normal = K[op.lock_vesicle], geo.normal
+        if not np.any(k):
+            return out
+        un = np.einsum("...mk,...mk->...m", op.grid_vec(u), normal)
+        unc = op.Tf.analysis(un)
+        unc[..., low] = 0.0
+        return out - op.coeffs_vec((k * op.Tf.synth(unc))[..., None] * normal)
+
+    op.membrane_force = membrane_force
+
+
+class SphereConstrainedOperator:
+    """MatPython context: op (with the lock installed, if any) plus c_k x[i_k] at rows i_k (the
+    constant tension of spheres); the preconditioners reach the StepOperator's attributes
+    (N, p, C, ...) through it and its self_block includes both terms."""
 
     def __init__(self, op, rows, c):
         self.op, self.rows, self.c = op, np.asarray(rows), np.asarray(c, dtype=float)
@@ -236,13 +282,32 @@ class GaugedOperator:
         y[self.rows] += self.c * np.asarray(x)[self.rows]
         return y
 
+    def self_block(self, v, *args, **kw):
+        self.op.lock_vesicle = v
+        B = self.op.self_block(v, *args, **kw)
+        self.op.lock_vesicle = None
+        k = np.nonzero(self.rows // self.op.block == v)[0]
+        if len(k):
+            B[3 * self.op.C, 3 * self.op.C] += self.c[k[0]]
+        return B
+
     def mult(self, mat, x, y):
         self.op.n_mult += 1
         y.setArray(self.apply(x.getArray(readonly=True)))
 
     def view(self, mat, viewer):
         self.op.view(mat, viewer)
-        viewer.printfASCII(f"  constant tension fixed on {len(self.rows)} spheres\n")
+        viewer.printfASCII(f"  sphere constraints on {len(self.rows)} vesicles\n")
+
+
+def _condition_estimate(ksp):
+    """sigma_max / sigma_min of the preconditioned operator from the Krylov method's Hessenberg
+    matrix (an estimate from the space GMRES built; NaN if the method gives none)."""
+    try:
+        smax, smin = ksp.computeExtremeSingularValues()
+    except Exception:                  # e.g. a -ksp_type without the estimate
+        return float("nan")
+    return float(smax / smin) if smin > 0 else float("inf")
 
 
 def _split_by_degree(op, a):
