@@ -22,6 +22,9 @@ import sys
 import time
 
 T_START = time.perf_counter()
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from vesflow.threads import early_environment  # noqa: E402  (before numpy: the run's thread policy)
+early_environment()
 
 SCENE = """
 title = "step cost (issue 16)"
@@ -122,6 +125,9 @@ def main(argv=None):
 def T_reset():
     global T_START
     T_START = time.perf_counter()
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+from vesflow.threads import early_environment  # noqa: E402  (before numpy: the run's thread policy)
+early_environment()
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ def test_a_run_sets_the_policy_before_the_kernels_are_loaded():
             "orig = threads.configure\n"
             "def spy(n):\n"
             "    assert not any(m.startswith('vesflow._kernels') for m in sys.modules), 'kernels loaded first'\n"
+            "    assert os.environ['OPENBLAS_NUM_THREADS'] == '1'\n"
             "    print('configured', n); return orig(n)\n"
             "threads.configure = spy\n"
             "import os\n"
@@ -40,6 +41,7 @@ def test_a_run_sets_the_policy_before_the_kernels_are_loaded():
     import tempfile
     with tempfile.TemporaryDirectory() as d:
         env = dict(os.environ, OMP_WAIT_POLICY="ACTIVE")
+        env.pop("OPENBLAS_NUM_THREADS", None)
         r = subprocess.run([sys.executable, "-c", code, os.path.join(d, "t.h5")], capture_output=True, text=True,
                            env=env, timeout=300)
     assert r.returncode == 0, r.stderr

@@ -23,6 +23,8 @@ _T_MAIN = None          # when main() started: the time to the first step is pri
 def main(argv=None):
     global _T_MAIN
     _T_MAIN = time.perf_counter()
+    from .threads import early_environment
+    early_environment()                      # before numpy is loaded (vesflow.threads)
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)

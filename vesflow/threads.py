@@ -14,8 +14,9 @@
   matrices are small and per vesicle: threads there cost more in start-up and busy-waiting
   than they save, and oversubscribe the cores the OpenMP kernels use next.
 
-`configure` must run before the kernels are imported (libgomp reads its environment when
-it is loaded); vesflow.cli calls it first.  Library users who import vesflow directly get
+`early_environment` must run before numpy is imported and `configure` before the kernels
+are (OpenBLAS and libgomp read their environment when they are loaded); vesflow.cli calls
+both, in that order.  Library users who import vesflow directly get
 the OpenMP and BLAS defaults of their environment until they call it.
 """
 from __future__ import annotations
@@ -23,6 +24,17 @@ from __future__ import annotations
 import os
 
 _state = {"limiter": None, "blas": None, "pool": None}
+
+
+def early_environment():
+    """Before numpy is imported: OpenBLAS starts with one thread and OpenMP threads wait
+    passively, unless the user set OPENBLAS_NUM_THREADS / OMP_WAIT_POLICY.  An OpenBLAS that
+    starts with a pool of OMP_NUM_THREADS threads stays 10-15% slower after being limited to
+    one at run time (p = 12 pair, OMP_NUM_THREADS=2: 3.0-3.1 s vs 2.5-2.6 s per 10 steps;
+    with OPENBLAS_NUM_THREADS=1 set first: 3.7 / 3.7 s vs 3.7 / 3.7 s at that moment's load);
+    `configure` raises it again when -ves_blas_threads asks for more."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def configure(blas_threads=1):
