@@ -354,6 +354,10 @@ def test_restart_continues_the_frame_sequence(tmp_path):
                   np.asarray(read_checkpoint(str(same))["coeffs"])).max() < 1e-8   # GMRES rtol: the
     # uninterrupted run did not drop its lagged LU factors at t_stop (measured 4.7e-10)
     assert np.abs(c.time - [0, 1, 2, 2.5, 3, 3.5, 4, 4.5, 5, 5.5, 6]).max() < 1e-12
+    # the horizon too is landed on without shrinking the next step: the checkpoint's dt (the
+    # first step of `--restart -ts_max_time` longer) is the proposal, not the last (landing) step
+    last_dt = a.steps["dt"][a.steps["accepted"] == 1][-1]
+    assert float(read_checkpoint(str(whole))["dt"]) > last_dt
 
 
 # ------------------------------------------------------------------ long runs
