@@ -354,6 +354,10 @@ def test_restart_continues_the_frame_sequence(tmp_path):
                   np.asarray(read_checkpoint(str(same))["coeffs"])).max() < 1e-8   # GMRES rtol: the
     # uninterrupted run did not drop its lagged LU factors at t_stop (measured 4.7e-10)
     assert np.abs(c.time - [0, 1, 2, 2.5, 3, 3.5, 4, 4.5, 5, 5.5, 6]).max() < 1e-12
+    # the horizon too is landed on without shrinking the next step: the checkpoint's dt (the
+    # first step of `--restart -ts_max_time` longer) is the proposal, not the last (landing) step
+    last_dt = a.steps["dt"][a.steps["accepted"] == 1][-1]
+    assert float(read_checkpoint(str(whole))["dt"]) > last_dt
 
 
 # ------------------------------------------------------------------ long runs
@@ -507,7 +511,9 @@ def run_sweep_case(shape, v, config, flow, gravity, lam, p, T):
     cond = run.stepper.cond_max
     print(f"[stability] {name}: preconditioned condition estimate <= {cond:.3g}, GMRES iterations per solve "
           f"<= {max(its):.0f} (mean {np.mean(its):.1f})")
-    assert cond < 1e3 and max(its) < 60
+    # v = 0.999: ~1e3, the constant-tension mode's eigenvalue 1 / (1 + c gamma) ~ 1e-3 (the
+    # operator's own near-singularity, docs/dynamics.md); the rest of the spectrum is within ~40
+    assert cond < 5e3 and max(its) < 60
     return inv, cond
 
 

@@ -141,6 +141,9 @@ class _PerVesicle:
                            f"rebuilt {self.rebuilds} times\n")
 
 
+TENSION_MODE_WEIGHT = 3.0    # |c| / (the block's estimate of the tension Schur complement scale)
+
+
 def regularize_tension_mode(B, C):
     """The self block B (4C x 4C: velocity 3C component-major, then tension C; the constant
     tension at 3C, the n = 0 divergence row at 3C) with its constant-tension mode regularized:
@@ -165,9 +168,6 @@ def regularize_tension_mode(B, C):
     out = np.array(B, dtype=float, copy=True)
     out[i0, i0] -= TENSION_MODE_WEIGHT * scale
     return out
-
-
-TENSION_MODE_WEIGHT = 3.0
 
 
 def pc_grid(p, q_force):
