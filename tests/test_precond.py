@@ -229,3 +229,27 @@ def test_preconditioner_rebuilds_are_the_same_in_every_run():
     assert runs[0][0].stepper._pc_context.rebuilds == runs[1][0].stepper._pc_context.rebuilds >= 1
     c0, c1 = (run.stepper.coeffs for run, _ in runs)
     assert np.array_equal(c0, c1)
+
+
+def test_sphere_lock_and_gauge_are_in_the_blocks_and_the_operator():
+    """A sphere's constraints (stepper.sphere_constraints: locking force and tension gauge) are
+    part of StepOperator: its block from matrices equals the unit-vector block and, for a single
+    vesicle, the operator itself, to rounding."""
+    from vesflow.stepper import sphere_constraints
+    c = np.stack([shapes.make_shape("sphere", P, radius=1.0),
+                  shapes.make_shape("oblate", P, reduced_volume=0.8, center=(3, 0, 0))])
+    st = Stepper(c, P, VesicleParams([0.1, 0.1], [1.0, 3.0], [0.0, 0.0]))
+    S = Surface(c, P)
+    _, op = st._setup(S, 0.05)
+    sphere_constraints(S, op, True)
+    assert op.lock[0] > 0 and op.gauge[0] < 0 and op.lock[1] == op.gauge[1] == 0
+    for v in range(2):
+        ref = op.self_block_by_columns(v)
+        assert np.abs(op.self_block(v) - ref).max() < 1e-12 * np.abs(ref).max()
+    one = Stepper(c[:1], P, VesicleParams([0.1], [1.0], [0.0]))
+    S1 = Surface(c[:1], P)
+    _, op1 = one._setup(S1, 0.05)
+    sphere_constraints(S1, op1, True)
+    x = np.random.default_rng(0).standard_normal(op1.block)
+    y = op1.apply(x)
+    assert np.abs(y - op1.self_block(0) @ x).max() < 1e-12 * np.abs(y).max()

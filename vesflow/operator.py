@@ -48,6 +48,10 @@ class StepOperator:
         self.block = 4 * self.C
         self.coupling = coupling
         self.n_mult = 0
+        # sphere constraints (stepper.sphere_constraints): the locking stiffness K_v of the force
+        # -K_v P_{n >= 2}(u . n) n and the gauge c_v added at (divergence n = 0, tension n = 0)
+        self.lock = np.zeros(self.N)
+        self.gauge = np.zeros(self.N)
 
     # ------------------------------------------------------------------ pieces
     def split(self, x):
@@ -64,13 +68,21 @@ class StepOperator:
     def coeffs_vec(self, v):
         return self.Tf.analysis(np.moveaxis(v, -1, -2))
 
-    def membrane_force(self, u, sigma, geo=None, kappa=None):
-        """Coefficients of dt B[u] + f_sigma(sigma) (the implicit part of the traction jump)."""
+    def membrane_force(self, u, sigma, geo=None, kappa=None, lock=None):
+        """Coefficients of dt B[u] + f_sigma(sigma) (the implicit part of the traction jump), plus
+        the locking force of spheres -K P_{n >= 2}(u . n) n where self.lock (or lock, for the
+        vesicles of geo) is nonzero."""
         geo = self.geo if geo is None else geo
         kappa = self.params.kappa if kappa is None else kappa
+        lock = self.lock if lock is None else np.asarray(lock, dtype=float)
         ug = self.grid_vec(u)
         sg = self.Tf.synth(sigma)
         f = self.dt * forces.linearized_bending_force(geo, kappa, ug) + forces.tension_force(geo, sg)
+        if np.any(lock):
+            low = sph.index_tables(self.p)[0][:self.C] <= 1
+            unc = self.Tf.analysis(np.einsum("...mk,...mk->...m", ug, geo.normal))
+            unc[..., low] = 0.0
+            f = f - (lock[:, None] * self.Tf.synth(unc))[..., None] * geo.normal
         return self.coeffs_vec(f)
 
     def divergence(self, u, geo=None):
@@ -87,7 +99,9 @@ class StepOperator:
         else:
             lpv = self.lp.self_part(f, g)
         r1 = self.params.alpha[:, None, None] * u - lpv
-        return self.join(r1, self.divergence(u))
+        r2 = self.divergence(u)
+        r2[:, 0] += self.gauge * s[:, 0]
+        return self.join(r1, r2)
 
     # ------------------------------------------------------------------ petsc4py Mat python interface
     def mult(self, mat, x, y):
@@ -143,9 +157,24 @@ class StepOperator:
         A0[:3 * C, 3 * C:] = -(S @ Mt)
         if self.lp.want_double:
             A0[:3 * C, :3 * C] = (1.0 - self.params.lam[v]) * self.lp.self_ops.double[v]
+        if self.lock[v]:
+            A0[:3 * C, :3 * C] -= S @ self.lock_matrix(v, q)
         A0[np.arange(3 * C), np.arange(3 * C)] += self.params.alpha[v]
         A0[3 * C:, :3 * C] = Div
+        A0[3 * C, 3 * C] += self.gauge[v]
         return A0, S @ Mb
+
+    def lock_matrix(self, v, q=None):
+        """The locking force of vesicle v, -K_v P_{n >= 2}(u . n) n, as a (3C, 3C) matrix
+        (formed as in membrane_force, on the q grid)."""
+        q = self.q_force if q is None else q
+        g, Tf, C = self.surface.geometry(q), sph.transform(self.p, q), self.C
+        Q = sph.basis_on_grid(self.p, q)[""]                          # (C, npts)
+        n = g.normal[v]
+        un = Tf.analysis(n.T[:, None, :] * Q[None])                   # (3 [u comp], C [u k], C [u.n k'])
+        un[..., sph.index_tables(self.p)[0][:C] <= 1] = 0.0
+        f = -self.lock[v] * Tf.synth(un)[:, :, None, :] * n.T[None, None]   # (3, C, 3 [force comp], npts)
+        return Tf.analysis(f).reshape(3 * C, 3 * C).T
 
     def self_block(self, v):
         """The dense 4C x 4C block of vesicle v with itself (forces, self layer potentials, divergence):
@@ -172,12 +201,13 @@ class StepOperator:
             E[np.arange(len(cols)), cols] = 1.0
             u = E[:, :3 * C].reshape(-1, 3, C)
             s = E[:, 3 * C:]
-            f = self.membrane_force(u, s, geo, kappa)
+            f = self.membrane_force(u, s, geo, kappa, lock=self.lock[v:v + 1])
             r = (ops_S @ f.reshape(-1, 3 * C).T).T
             if ops_D is not None:
                 r -= (1.0 - lam) * (ops_D @ u.reshape(-1, 3 * C).T).T
             r1 = alpha * u.reshape(-1, 3 * C) - r
             r2 = self.Tf.analysis(geo.div(self.grid_vec(u)))
+            r2[:, 0] += self.gauge[v] * s[:, 0]
             A[:, cols] = np.concatenate([r1, r2], axis=1).T
         return A
 

@@ -207,8 +207,9 @@ LOCK_STIFFNESS = 1e3  # K of the locking force -K (mu / R) (u.n)_{n >= 2} n on s
 
 
 def sphere_constraints(surface, op, lock=True):
-    """The operator with the two constraints of a sphere (reduced volume above 1 - SPHERE_TOL),
-    or op itself if there is none (docs/dynamics.md, "Spheres and near-spheres", "Locked shape").
+    """op with the two constraints of a sphere (reduced volume above 1 - SPHERE_TOL) set in it:
+    StepOperator.gauge and .lock, which its apply, membrane_force and block parts include
+    (docs/dynamics.md, "Spheres and near-spheres", "Locked shape").
 
     Gauge.  On a sphere a constant tension exerts no force (2 H sigma n with H constant; the
     single layer of n vanishes on and off a closed surface): its column is zero and the n = 0
@@ -235,69 +236,10 @@ def sphere_constraints(surface, op, lock=True):
     if len(spheres) == 0:
         return op
     R = surface.effective_radius()
-    c = -0.4 / (R[spheres] * op.params.mu * op.params.alpha[spheres])
-    K = np.zeros(op.N)
+    op.gauge[spheres] = -0.4 / (R[spheres] * op.params.mu * op.params.alpha[spheres])
     if lock:
-        K[spheres] = LOCK_STIFFNESS * op.params.mu / R[spheres]
-        _install_lock(op, K)
-    return SphereConstrainedOperator(op, spheres * op.block + 3 * op.C, c)
-
-
-def _install_lock(op, K):
-    """op.membrane_force (used by op.apply, op.self_block and the explicit coupling) plus the
-    locking force -K_v P_{n >= 2}(u . n) n of each vesicle v (K_v = 0: none)."""
-    from .operator import StepOperator
-    low = sph.index_tables(op.p)[0][:op.C] <= 1
-    op.lock_vesicle = None                       # set by SphereConstrainedOperator.self_block
-
-    def membrane_force(u, sigma, geo=None, kappa=None):
-        out = StepOperator.membrane_force(op, u, sigma, geo, kappa)
-        if geo is None:
-            k, normal = K[:, None], op.geo.normal
-        else:
-            k, normal = K[op.lock_vesicle], geo.normal
-        if not np.any(k):
-            return out
-        un = np.einsum("...mk,...mk->...m", op.grid_vec(u), normal)
-        unc = op.Tf.analysis(un)
-        unc[..., low] = 0.0
-        return out - op.coeffs_vec((k * op.Tf.synth(unc))[..., None] * normal)
-
-    op.membrane_force = membrane_force
-
-
-class SphereConstrainedOperator:
-    """MatPython context: op (with the lock installed, if any) plus c_k x[i_k] at rows i_k (the
-    constant tension of spheres); the preconditioners reach the StepOperator's attributes
-    (N, p, C, ...) through it and its self_block includes both terms."""
-
-    def __init__(self, op, rows, c):
-        self.op, self.rows, self.c = op, np.asarray(rows), np.asarray(c, dtype=float)
-
-    def __getattr__(self, name):
-        return getattr(self.op, name)
-
-    def apply(self, x):
-        y = self.op.apply(x)
-        y[self.rows] += self.c * np.asarray(x)[self.rows]
-        return y
-
-    def self_block(self, v, *args, **kw):
-        self.op.lock_vesicle = v
-        B = self.op.self_block(v, *args, **kw)
-        self.op.lock_vesicle = None
-        k = np.nonzero(self.rows // self.op.block == v)[0]
-        if len(k):
-            B[3 * self.op.C, 3 * self.op.C] += self.c[k[0]]
-        return B
-
-    def mult(self, mat, x, y):
-        self.op.n_mult += 1
-        y.setArray(self.apply(x.getArray(readonly=True)))
-
-    def view(self, mat, viewer):
-        self.op.view(mat, viewer)
-        viewer.printfASCII(f"  sphere constraints on {len(self.rows)} vesicles\n")
+        op.lock[spheres] = LOCK_STIFFNESS * op.params.mu / R[spheres]
+    return op
 
 
 def _condition_estimate(ksp):
