@@ -75,7 +75,7 @@ def test_step_rule():
 
 
 def test_fixed_q_by_default():
-    run, q = _run(0.2)
+    run, q = _run(0.4)
     assert np.all(q == 16) and not hasattr(run, "quad_errors")
 
 
