@@ -235,7 +235,7 @@ def test_periodic_ewald_is_independent_of_xi(rng):
     pts = np.concatenate([src, trg])
     u = []
     for xi in (6.0, 9.0, 14.0):
-        p = ewald.make_params(1e-11, xi, math.sqrt(math.log(1e11) + ewald.C_REAL) / xi, pts, period=L)
+        p = ewald.make_params(1e-11, xi, ewald._exponents(math.log(1e11))[0] / xi, pts, period=L)
         u.append(ewald.EwaldSum(src, sid, trg, tid, params=p).evaluate(f, nw, g))
     assert rel_err(u[0], u[1]) < 1e-10
     assert rel_err(u[0], u[2]) < 1e-10
@@ -391,3 +391,21 @@ def test_single_and_double_layer_in_two_passes_when_the_grids_do_not_fit(rng, mo
     monkeypatch.setattr(ewald, "MAX_GRID_BYTES", 1)
     two = es.evaluate(f, nw, g)
     assert len(calls) == 2 and rel_err(two, one) < 1e-13
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("tol, xi", [(1e-4, 2.0), (1e-8, 1.0), (1e-10, 0.5)])
+def test_free_space_accuracy_with_a_large_splitting_in_a_large_box(tol, xi):
+    """Sparse clusters in a box of side 12 with xi B up to 24 (a stress test of the window
+    and of the stresslet's error prefactors): both layers within tol of the direct sum."""
+    rng = np.random.default_rng(4)
+    src, sid, trg, tid = clusters(rng, 40, 30, 12.0, 0.5, 10, free_trg=10)
+    f, nw, g = rng.standard_normal((3, src.shape[0], 3))
+    pts = np.concatenate([src, trg])
+    p = ewald.make_params(tol, xi, ewald._exponents(math.log(1 / tol))[0] / xi, pts)
+    es = ewald.EwaldSum(src, sid, trg, tid, params=p)
+    for dens, kern in (((f, None, None), lambda o: stokes.stokeslet_sum_excl(src, f, sid, trg, tid, o)),
+                       ((None, nw, g), lambda o: stokes.stresslet_sum_excl(src, nw, g, sid, trg, tid, o))):
+        ref = np.zeros(trg.shape)
+        kern(ref)
+        assert rel_err(es.evaluate(*dens), ref) < tol

@@ -117,7 +117,7 @@ def estimate(scene, opts=None, near=True):
     t_forces = N * (FORCE_S[0] + FORCE_S[1] * p ** 3)
     t_self = mem_self / BANDWIDTH
     backend, t_far = "none", 0.0
-    if N > 1:
+    if N > 1 or eff.periodic:          # periodic: a single vesicle sees its images
         nsrc, ntrg = N * Mq, N * M
         eps = float(o.get("far_tol") or farmod.DEFAULT_EPS)
         t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, eps)

@@ -63,8 +63,8 @@ from vesflow.errors import SceneError
 NUFFT_LIBS = ("finufft", "ducc0")
 # margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
 # relative error stays below tol for 1e-4 .. 1e-10 (tests/test_ewald.py)
-C_REAL = 1.0
-C_FOURIER = 1.0
+C_REAL = 0.0
+C_FOURIER = 0.0
 C_WINDOW = 2.0
 # NUFFT accuracy requested, relative to tol
 NUFFT_EPS_FACTOR = 0.1
@@ -134,6 +134,15 @@ def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
     return t / max(1, threads)
 
 
+def _exponents(lt):
+    """``(xi rc, k_max / (2 xi))`` for ln(1/tol) = lt: ``z^2 = lt + C + 1.5 ln(lt + C)``, the
+    estimate ``exp(-z^2)`` with the stresslet's prefactor ``~ z^3`` (its real-space kernel at rc
+    over T is ``~ (xi rc)^3 exp(-xi^2 rc^2)``; its Fourier sum carries one more power of k)."""
+    zr = lt + C_REAL
+    zf = lt + C_FOURIER
+    return math.sqrt(zr + 1.5 * math.log(zr)), math.sqrt(zf + 1.5 * math.log(zf))
+
+
 def _modes(period, kmax):
     # K even with pi K / P >= kmax
     return tuple(int(2 * math.ceil(P * kmax / (2 * math.pi))) for P in period)
@@ -150,8 +159,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     nsrc = n // 2 if nsrc is None else nsrc
     ntrg = n - n // 2 if ntrg is None else ntrg
     lt = math.log(1.0 / tol)
-    a_real = math.sqrt(lt + C_REAL)
-    a_four = math.sqrt(lt + C_FOURIER)
+    a_real, a_four = _exponents(lt)
     nufft_eps = max(tol * NUFFT_EPS_FACTOR, 1e-14)
     if period is not None:
         L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
@@ -198,7 +206,7 @@ def make_params(tol, xi, rc, points, period=None):
     """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``):
     for tests of the independence of the result on xi."""
     lt = math.log(1.0 / tol)
-    kmax = 2.0 * xi * math.sqrt(lt + C_FOURIER)
+    kmax = 2.0 * xi * _exponents(lt)[1]
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if period is not None:
         L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
