@@ -1,0 +1,91 @@
+"""Observed order in dt of the first-order step (euler) and of SDC (vesflow/sdc.py), fixed steps.
+
+    PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sdc_order.py [--p 6] [--case prolate,pair]
+
+Cases: a relaxing prolate (reduced volume 0.85, kappa 1, no flow, T = 0.4) and a sheared pair
+(two oblates, reduced volume 0.85, kappa 0.1, shear rate 1, T = 0.4).  The error is the largest
+grid-point distance at T to a reference of 4 Gauss-Lobatto nodes and 4 sweeps at dt = T / 64
+(order 5: below 1e-9 here); no reparameterization or area/volume correction (they are per
+accepted step of a run, not part of the integrator).  GMRES rtol 1e-11 (-ksp_rtol).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+
+def case_setup(name, p):
+    """(coefficients, VesicleParams, Physics, T) of a case."""
+    from vesflow import shapes
+    from vesflow.operator import VesicleParams
+    from vesflow.stepper import Physics
+    if name == "prolate":
+        c = shapes.make_shape("prolate", p, reduced_volume=0.85)[None]
+        return c, VesicleParams([1.0], [1.0], [0.0]), Physics(), 0.4
+    if name == "pair":
+        c = np.stack([shapes.make_shape("oblate", p, reduced_volume=0.85, center=(-1.5, 0, 0.4)),
+                      shapes.make_shape("oblate", p, reduced_volume=0.85, center=(1.5, 0, -0.4))])
+        return (c, VesicleParams([0.1] * 2, [1.0] * 2, [0.0] * 2),
+                Physics(flow="shear", flow_args={"rate": 1.0}), 0.4)
+    raise ValueError(f"case = {name!r}: must be prolate or pair")
+
+
+def final_state(name, p, dt, scheme, nodes=3, sweeps=2):
+    """Position coefficients at T after fixed steps dt (scheme euler or sdc); and the solves' GMRES iterations."""
+    from vesflow.sdc import SDC
+    from vesflow.stepper import Stepper
+    c, params, phys, T = case_setup(name, p)
+    st = Stepper(c, p, params, phys)
+    sdc = SDC(st, nodes, sweeps) if scheme == "sdc" else None
+    its = 0
+    for _ in range(int(round(T / dt))):
+        its += (sdc.step(dt)[0] if sdc else st.step(dt)).its
+    return st.coeffs, its
+
+
+def order_table(name, p, dts, schemes, ref_dt_div=64):
+    """Rows (scheme, dt, error, order vs the previous dt, seconds) against the fine reference."""
+    from vesflow import sph
+    T = case_setup(name, p)[3]
+    ref, _ = final_state(name, p, T / ref_dt_div, "sdc", nodes=4, sweeps=4)
+    Tp = sph.transform(p)
+    rows = []
+    for label, scheme, nodes, sweeps in schemes:
+        prev = None
+        for dt in dts:
+            t0 = time.perf_counter()
+            X, its = final_state(name, p, dt, scheme, nodes, sweeps)
+            sec = time.perf_counter() - t0
+            err = float(np.abs(Tp.synth(X - ref)).max())
+            order = np.log(prev[1] / err) / np.log(prev[0] / dt) if prev else float("nan")
+            rows.append((label, dt, err, order, its, sec))
+            prev = (dt, err)
+    return rows
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--p", type=int, default=6)
+    ap.add_argument("--case", default="prolate,pair")
+    ap.add_argument("--dts", default="0.1,0.05,0.025,0.0125")
+    args = ap.parse_args(argv)
+    import petsc4py
+    petsc4py.init([])
+    from petsc4py import PETSc
+    PETSc.Options()["ksp_rtol"] = 1e-11
+    schemes = [("euler", "euler", 0, 0), ("sdc 3 nodes, 1 sweep", "sdc", 3, 1),
+               ("sdc 3 nodes, 2 sweeps", "sdc", 3, 2), ("sdc 3 nodes, 3 sweeps", "sdc", 3, 3),
+               ("sdc 4 nodes, 3 sweeps", "sdc", 4, 3)]
+    dts = [float(x) for x in args.dts.split(",")]
+    for name in args.case.split(","):
+        print(f"\n{name}, p = {args.p}")
+        print(f"| scheme | dt | error at T | observed order | GMRES its | wall s |\n|---|---|---|---|---|---|")
+        for label, dt, err, order, its, sec in order_table(name, args.p, dts, schemes):
+            print(f"| {label} | {dt:g} | {err:.2e} | {'' if np.isnan(order) else f'{order:.2f}'} | {its} | {sec:.1f} |",
+                  flush=True)
+
+
+if __name__ == "__main__":
+    main()

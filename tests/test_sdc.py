@@ -1,0 +1,91 @@
+"""Spectral deferred correction (vesflow/sdc.py, issue 18): nodes, quadrature, observed order."""
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from vesflow.sdc import integration_matrix, lobatto_nodes
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _order_bench():
+    spec = importlib.util.spec_from_file_location("sdc_order", ROOT / "benchmarks" / "sdc_order.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5])
+def test_lobatto_nodes_and_integration_matrix_are_exact_for_degree_n_minus_1(n):
+    tau = lobatto_nodes(n)
+    S = integration_matrix(tau)
+    assert tau[0] == 0.0 and tau[-1] == 1.0 and np.all(np.diff(tau) > 0)
+    for k in range(n):
+        exact = (tau[1:] ** (k + 1) - tau[:-1] ** (k + 1)) / (k + 1)
+        assert np.allclose(S @ tau ** k, exact, atol=1e-13)
+    # Lobatto weights are the row sums of S over all substeps: 2n - 3 exact degrees
+    w = S.sum(axis=0)
+    for k in range(2 * n - 2):
+        assert abs(w @ tau ** k - 1.0 / (k + 1)) < 1e-13
+
+
+def test_lobatto_nodes_known_values():
+    assert np.allclose(lobatto_nodes(3), [0, 0.5, 1])
+    assert np.allclose(lobatto_nodes(4), [0, 0.5 - np.sqrt(5) / 10, 0.5 + np.sqrt(5) / 10, 1])
+    with pytest.raises(ValueError, match="at least 2"):
+        lobatto_nodes(1)
+
+
+@pytest.fixture
+def tight_rtol():
+    petsc4py = pytest.importorskip("petsc4py")
+    petsc4py.init([])
+    from petsc4py import PETSc
+    opts = PETSc.Options()
+    opts["ksp_rtol"] = 1e-11
+    yield
+    opts.delValue("ksp_rtol")
+
+
+def test_resting_sphere_stays_at_rest_with_sdc(tight_rtol):
+    from vesflow import shapes, sph
+    from vesflow.operator import VesicleParams
+    from vesflow.sdc import SDC
+    from vesflow.stepper import Stepper
+    p = 6
+    c = shapes.make_shape("sphere", p)[None]
+    st = Stepper(c, p, VesicleParams([0.1], [1.0], [0.0]))
+    sol, err = SDC(st, 3, 2).step(0.2)
+    assert np.abs(sph.transform(p).synth(st.coeffs - c)).max() < 1e-12 and err < 1e-12
+    assert st.time == 0.2 and np.ptp(sph.transform(p).synth(sol.sigma)) < 1e-9
+
+
+def _orders(case, p, dts, sweeps, ref_div):
+    bench = _order_bench()
+    from vesflow import sph
+    T = bench.case_setup(case, p)[3]
+    ref, _ = bench.final_state(case, p, T / ref_div, "sdc", nodes=3, sweeps=3)
+    Tp = sph.transform(p)
+    errs = [np.abs(Tp.synth(bench.final_state(case, p, dt, "sdc", 3, sweeps)[0] - ref)).max() for dt in dts]
+    euler = np.abs(Tp.synth(bench.final_state(case, p, dts[-1], "euler")[0] - ref)).max()
+    orders = np.log(np.array(errs[:-1]) / errs[1:]) / np.log(np.array(dts[:-1]) / dts[1:])
+    print(f"{case}: sdc errors {errs} orders {orders}; euler at dt = {dts[-1]}: {euler:.2e}")
+    return errs, orders, euler
+
+
+def test_sdc_two_sweeps_second_order_relaxing_prolate(tight_rtol):
+    """Measured at p = 6: errors 3.2e-4, 6.4e-5 (order 2.3); euler at dt = 0.05: 1.0e-2."""
+    errs, orders, euler = _orders("prolate", 6, [0.1, 0.05], sweeps=2, ref_div=16)
+    assert orders[0] >= 1.8
+    assert errs[-1] < 0.05 * euler
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", ["prolate", "pair"])
+def test_sdc_orders_two_and_three_sweeps(tight_rtol, case):
+    errs2, orders2, euler = _orders(case, 6, [0.1, 0.05, 0.025], sweeps=2, ref_div=64)
+    errs3, orders3, _ = _orders(case, 6, [0.1, 0.05, 0.025], sweeps=3, ref_div=64)
+    assert orders2[-1] >= 2.3 and orders3[-1] >= 3.0
+    assert errs3[-1] < errs2[-1] < 0.02 * euler
