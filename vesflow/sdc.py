@@ -62,6 +62,7 @@ class SDC:
         self.sweeps = int(sweeps)
         stepper.lp_cache_size = max(stepper.lp_cache_size, nodes)   # X_0 reused by every sweep
         self.iterations = 0
+        self.error = None                 # estimate of the last step
 
     def _solve(self, dt, X, displacement=None):
         st = self.stepper
@@ -77,7 +78,7 @@ class SDC:
         """One step of dt from the stepper's state.  Returns (Solution, error estimate): the
         Solution is the velocity and tension at the end node of the last sweep but one (the
         final state's to the error estimate); the estimate is max |X^K_M - X^{K-1}_M| on the grid
-        (0 with no sweep)."""
+        (of the order of the local error of K - 1 sweeps)."""
         st = self.stepper
         p, M = st.p, len(self.tau) - 1
         h = dt * np.diff(self.tau)
@@ -105,7 +106,7 @@ class SDC:
             if not last_sweep:
                 Fn.append(self._solve(0.0, sn[M]))
             prev_end, F_end, X, F, surf = X[M], F[M], Xn, Fn, sn
-        err = float(np.abs(sph.transform(p).synth(X[M] - prev_end)).max()) if self.sweeps else 0.0
+        err = self.error = float(np.abs(sph.transform(p).synth(X[M] - prev_end)).max())
         st.coeffs = X[M].copy()
         st.time += dt
         return Solution(F_end.u, F_end.sigma, self.iterations, F_end.reason), err
