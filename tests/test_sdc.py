@@ -62,14 +62,15 @@ def test_resting_sphere_stays_at_rest_with_sdc(tight_rtol):
     assert st.time == 0.2 and np.ptp(sph.transform(p).synth(sol.sigma)) < 1e-9
 
 
-def _orders(case, p, dts, sweeps, ref_div):
+def _orders(case, p, dts, sweeps, ref_div, near_factor=1.0):
     bench = _order_bench()
     from vesflow import sph
     T = bench.case_setup(case, p)[3]
-    ref, _ = bench.final_state(case, p, T / ref_div, "sdc", nodes=3, sweeps=3)
+    ref, _ = bench.final_state(case, p, T / ref_div, "sdc", 3, 3, near_factor)
     Tp = sph.transform(p)
-    errs = [np.abs(Tp.synth(bench.final_state(case, p, dt, "sdc", 3, sweeps)[0] - ref)).max() for dt in dts]
-    euler = np.abs(Tp.synth(bench.final_state(case, p, dts[-1], "euler")[0] - ref)).max()
+    errs = [np.abs(Tp.synth(bench.final_state(case, p, dt, "sdc", 3, sweeps, near_factor)[0] - ref)).max()
+            for dt in dts]
+    euler = np.abs(Tp.synth(bench.final_state(case, p, dts[-1], "euler", near_factor=near_factor)[0] - ref)).max()
     orders = np.log(np.array(errs[:-1]) / errs[1:]) / np.log(np.array(dts[:-1]) / dts[1:])
     print(f"{case}: sdc errors {errs} orders {orders}; euler at dt = {dts[-1]}: {euler:.2e}")
     return errs, orders, euler
@@ -85,9 +86,14 @@ def test_sdc_two_sweeps_second_order_relaxing_prolate(tight_rtol):
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["prolate", "pair"])
 def test_sdc_orders_two_and_three_sweeps(tight_rtol, case):
-    errs2, orders2, euler = _orders(case, 6, [0.1, 0.05, 0.025], sweeps=2, ref_div=64)
-    errs3, orders3, _ = _orders(case, 6, [0.1, 0.05, 0.025], sweeps=3, ref_div=64)
-    assert orders2[-1] >= 2.3 and orders3[-1] >= 3.0
+    """K sweeps: order K + 1 (docs/dynamics.md; measured at dt = 0.05 -> 0.025: prolate 2.60 and
+    3.46, pair 2.94 and 3.87).  The pair without near zone (near factor 0.01): the near-singular
+    rule's zone, entered and left by grid points at times that depend on dt, makes the velocity
+    field discontinuous at its quadrature error (~1e-6 at p = 6), a floor of the time error."""
+    nf = 0.01 if case == "pair" else 1.0
+    errs2, orders2, euler = _orders(case, 6, [0.1, 0.05, 0.025], sweeps=2, ref_div=64, near_factor=nf)
+    errs3, orders3, _ = _orders(case, 6, [0.1, 0.05, 0.025], sweeps=3, ref_div=64, near_factor=nf)
+    assert orders2[-1] >= 2.4 and orders3[-1] >= 3.3
     assert errs3[-1] < errs2[-1] < 0.02 * euler
 
 
