@@ -11,7 +11,9 @@ from vesflow.errors import SceneError
 def test_parse_case_and_errors():
     assert study.parse_case("12,0.01,0.04") == study.Case(12, 0.01, 0.04)
     assert study.parse_case("8,1e-2") == study.Case(8, 0.01, 0.0)
-    for bad in ["8", "8.5,0.1", "8,-1", "8,0.1,-0.1", "a,b", "1,0.1"]:
+    assert study.parse_case("8,1e-2,0,sdc") == study.Case(8, 0.01, 0.0, "sdc")
+    assert study.Case(8, 0.01).key == "p8_tol0.01_R0" and study.Case(8, 0.01, 0, "sdc").key == "p8_tol0.01_R0_sdc"
+    for bad in ["8", "8.5,0.1", "8,-1", "8,0.1,-0.1", "a,b", "1,0.1", "8,0.1,0,rk4"]:
         with pytest.raises(SceneError, match="expected p,tol"):
             study.parse_case(bad)
 

@@ -154,6 +154,45 @@ def test_restart_from_the_first_checkpoint_into_another_file(reference, tmp_path
     np.testing.assert_array_equal(longer.time[:ref.n_frames], ref.time)
 
 
+@pytest.fixture(scope="module")
+def sdc_reference(tmp_path_factory):
+    """The uninterrupted run with -ts_type sdc (issue 18)."""
+    d = tmp_path_factory.mktemp("restart_sdc")
+    scene = d / "pair.toml"
+    scene.write_text(PAIR)
+    r = vesflow(["run", scene, "-o", d / "ref.h5", "-ts_type", "sdc"] + RUN_OPTS)
+    assert r.returncode == 0, r.stderr
+    from vesflow.io import read_output
+    ref = read_output(d / "ref.h5")
+    assert ref.time[-1] == pytest.approx(0.3) and ref.n_frames >= 3
+    return scene, ref
+
+
+def test_sdc_run_killed_after_a_checkpoint_restarts_into_the_uninterrupted_run(sdc_reference, tmp_path):
+    from vesflow.io import read_checkpoint, read_output
+    scene, ref = sdc_reference
+    out = tmp_path / "killed.h5"
+    proc = subprocess.Popen(VESFLOW + ["run", str(scene), "-o", str(out), "-ts_type", "sdc"] + RUN_OPTS, cwd=ROOT,
+                            env=ENV, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for line in proc.stdout:                       # -ts_monitor: kill once a step starts after t = 0.1
+            if line.startswith("step") and float(line.split()[2][2:]) > 0.1:
+                break
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL, f"the run ended before the kill (status {proc.returncode})"
+    t_ck = float(read_checkpoint(out)["time"])
+    assert 0.05 <= t_ck < 0.3
+    r = vesflow(["run", "--restart", out])
+    assert r.returncode == 0, r.stderr
+    res = read_output(out)
+    assert_same_run(res, ref)
+    assert list(res.restarts) == [t_ck] and "-ts_type sdc" in res.attrs["options"]
+
+
 def test_restart_errors_are_one_line(tmp_path):
     bad = tmp_path / "missing.h5"
     r = vesflow(["run", "--restart", bad])

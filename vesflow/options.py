@@ -114,9 +114,17 @@ REGISTRY: tuple[Option, ...] = (
        "lagged to the right-hand side (explicit: cheaper, less stable)", "solver",
        choices=("implicit", "explicit")),
     # -- time stepping ---------------------------------------------------------------------------
-    _O("-ves_adapt", str, "doubling", "adaptive time step: none (fixed dt), doubling (one step vs two "
-       "half steps), invariants (relative change of area and volume)", "time stepping",
-       choices=("none", "doubling", "invariants")),
+    _O("-ts_type", str, "euler", "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
+       "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py)",
+       "time stepping", choices=("euler", "sdc")),
+    _O("-ts_sdc_nodes", int, 3, "Gauss-Lobatto nodes of an sdc step (nodes - 1 substeps)", "time stepping",
+       ge=2, le=9),
+    _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
+       ge=1, le=20),
+    _O("-ves_adapt", str, None, "adaptive time step: none (fixed dt), doubling (one step vs two "
+       "half steps), invariants (relative change of area and volume), sweeps (difference of the last "
+       "two sdc sweeps, -ts_type sdc)", "time stepping",
+       choices=("none", "doubling", "invariants", "sweeps"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
     _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",
        gt=0, le=1),
@@ -350,6 +358,13 @@ def read_options(getter, scene=None) -> OptionValues:
                 _fail(OPTIONS[f"-ves_{key}"], vals[key], f"must be <= -ves_q_max = {vals['q_max']}")
         if vals["checkpoint_every"] is None:
             vals["checkpoint_every"] = scene.output.every
+    if vals["adapt"] is None:
+        vals["adapt"] = "sweeps" if vals["ts_type"] == "sdc" else "doubling"
+    elif vals["adapt"] == "sweeps" and vals["ts_type"] != "sdc":
+        _fail(OPTIONS["-ves_adapt"], "sweeps", f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
+    if vals["ts_type"] == "sdc" and vals["coupling"] != "implicit":
+        _fail(OPTIONS["-ts_type"], "sdc", "needs -ves_coupling implicit (the quadrature integrates the "
+              "velocity field; lagged coupling terms are not it)")
     if vals["dt_max"] is not None and vals["dt_min"] >= vals["dt_max"]:
         _fail(OPTIONS["-ves_dt_min"], vals["dt_min"], f"must be < -ves_dt_max = {_show(vals['dt_max'])}")
     if vals["reparam_tol"] >= vals["reparam_dtau_max"]:

@@ -1,8 +1,9 @@
 """A run: scene -> initial state -> time steps (adaptive, with rejection) -> HDF5 frames and checkpoints.
 
 Adaptive stepping (paper 3.7): the error e = max |X(two steps of dt/2) - X(one step of dt)|
-is accepted when e / dt <= E/T (-ves_adapt_tol); the next step is dt * beta (E/T) dt / e
-(k = 1), within [dt_min, dt_max] and at most doubling.  A step is also rejected (dt halved)
+(-ts_type sdc: by default the difference of its last two sweeps, vesflow/sdc.py) is accepted
+when e / dt <= E/T (-ves_adapt_tol); the next step is dt (beta (E/T) dt / e)^(1/k) (k = 1 for
+the first-order step; for sdc the order of e / dt), within [dt_min, dt_max] and at most doubling.  A step is also rejected (dt halved)
 on a GMRES failure, a non-finite result or a collision (paper 3.3).
 """
 from __future__ import annotations
@@ -72,6 +73,13 @@ class Run:
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
         self.stepper = Stepper(coeffs, self.p, params, phys, settings, coupling=opts["coupling"],
                                timers=self.timers)
+        self.sdc = None                   # -ts_type sdc: the SDC steps of the stepper
+        self.err_order = 1                # k of the step update dt (beta tol dt / err)^(1/k)
+        if opts["ts_type"] == "sdc":
+            from .sdc import SDC
+            self.sdc = SDC(self.stepper, opts["ts_sdc_nodes"], opts["ts_sdc_sweeps"])
+            K, top = opts["ts_sdc_sweeps"], 2 * opts["ts_sdc_nodes"] - 2     # order min(K + 1, top)
+            self.err_order = {"doubling": min(K + 1, top), "sweeps": min(K, top)}.get(opts["adapt"], 1)
         if phys.repulsion_radius > 0:
             from .repulsion import repulsion_force
             R = phys.repulsion_radius
@@ -115,20 +123,23 @@ class Run:
         st = self.stepper
         saved = (st.coeffs.copy(), st.time, st.last)
         adapt = self.opts["adapt"]
+        advance = st.step if self.sdc is None else (lambda h: self.sdc.step(h)[0])
         try:
-            sol = st.step(dt)
+            sol = advance(dt)
             its = sol.its
             err = 0.0
             if adapt == "doubling":
                 one = st.coeffs.copy()
                 st.coeffs, st.time, st.last = saved[0].copy(), saved[1], saved[2]
-                s1 = st.step(0.5 * dt)
+                s1 = advance(0.5 * dt)
                 if self.opts["correct"] == "area_volume":   # a sphere stays the standard sphere
                     st.coeffs = restore_spheres(st.coeffs, self.p, self.area0, self.volume0)[0]
-                s2 = st.step(0.5 * dt)
+                s2 = advance(0.5 * dt)
                 its += s1.its + s2.its
                 sol = s2
                 err = self._doubling_error(one, st.coeffs)
+            elif adapt == "sweeps":
+                err = self.sdc.error
             elif adapt == "invariants":
                 S = st.surface
                 err = float(max(np.abs(S.area() / self.area0 - 1).max(), np.abs(S.volume() / self.volume0 - 1).max()))
@@ -246,7 +257,7 @@ class Run:
         if err <= 0:
             new = 2.0 * dt
         else:
-            new = dt * min(2.0, o["adapt_beta"] * o["adapt_tol"] * dt / err)
+            new = dt * min(2.0, o["adapt_beta"] * (o["adapt_tol"] * dt / err) ** (1.0 / self.err_order))
         if o["dt_max"] is not None:
             new = min(new, o["dt_max"])
         return max(new, o["dt_min"])

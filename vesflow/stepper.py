@@ -62,6 +62,8 @@ class Stepper:
         self.lock_spheres = True    # a sphere's normal velocity of degree >= 2 held at 0 (sphere_constraints)
         self.cond_estimate = None   # of the last solve's preconditioned operator (_condition_estimate)
         self.cond_max = 0.0         # the largest of them so far
+        self.lp_cache_size = 1      # layer potentials kept for this many surfaces (SDC: one per node)
+        self._lp_cache = []
 
     @property
     def surface(self):
@@ -83,15 +85,18 @@ class Stepper:
     # ------------------------------------------------------------------ pieces of one solve
     def _setup(self, surface, dt):
         """Layer potentials of the surface (kept while the surface and the quadrature degrees do
-        not change: the step and half step of step doubling share them) and the step operator."""
+        not change: the step and half step of step doubling share them; the last lp_cache_size
+        surfaces) and the step operator."""
         key = (id(surface), self.lp_settings.q_self, self.lp_settings.q_far)
-        cached = getattr(self, "_lp_cache", None)
-        if cached is not None and cached[0] == key and cached[1].surface is surface:
-            lp = cached[1]
-        else:
+        cache = self._lp_cache
+        lp = next((c[1] for c in cache if c[0] == key and c[1].surface is surface), None)
+        if lp is None:
             lp = LayerPotentials(surface, lam=self.params.lam, viscosity=self.params.mu,
                                  settings=self.lp_settings, timers=self.timers)
-            self._lp_cache = (key, lp)
+        else:
+            cache.remove((key, lp))
+        cache.append((key, lp))                 # most recently used last
+        del cache[:-self.lp_cache_size]
         op = StepOperator(surface, self.params, dt, lp, self.q_force, self.coupling)
         return lp, op
 
@@ -123,8 +128,20 @@ class Stepper:
             b1 = b1 + lp.apply(fi, g) - lp.self_part(fi, g)
         return op.join(b1, np.zeros((surface.n_vesicles, sph.n_coeffs(self.p))))
 
-    def solve(self, dt, surface=None):
-        """Velocity and tension at the current (or given) configuration for a step dt."""
+    def correction_rhs(self, lp, op, displacement):
+        """Right side S[B[e]] of the correction equation for a displacement e (N, 3, C):
+        the single layer of its linearized bending force (3.12) on the frozen geometry."""
+        f = forces.linearized_bending_force(op.geo, self.params.kappa, op.grid_vec(displacement))
+        b1 = lp.apply(op.coeffs_vec(f), None)
+        return op.join(b1, np.zeros((op.N, sph.n_coeffs(self.p))))
+
+    def solve(self, dt, surface=None, displacement=None):
+        """Velocity and tension at the current (or given) configuration for a step dt.
+
+        With a displacement e, the same operator with the right side S[B[e]] (correction_rhs)
+        and a zero initial guess: the response w of the spectral deferred correction sweep
+        (vesflow.sdc), e + dt w = e + dt V[B[e + dt w]].
+        """
         from petsc4py import PETSc
         surface = self.surface if surface is None else surface
         adapt_openmp()
@@ -135,8 +152,9 @@ class Stepper:
         A.setUp()
         b = A.createVecRight()
         x = A.createVecLeft()
-        b.setArray(self.rhs(surface, lp, op))
-        if self.last is not None and self.last.u.shape == (surface.n_vesicles, 3, sph.n_coeffs(self.p)):
+        b.setArray(self.rhs(surface, lp, op) if displacement is None else self.correction_rhs(lp, op, displacement))
+        if (displacement is None and self.last is not None
+                and self.last.u.shape == (surface.n_vesicles, 3, sph.n_coeffs(self.p))):
             x.setArray(op.join(self.last.u, self.last.sigma))
         else:
             x.set(0.0)

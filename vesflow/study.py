@@ -31,17 +31,22 @@ from .errors import NumericalFailure, VesflowError
 from .surface import Surface
 
 
+SCHEMES = ("euler", "sdc")      # -ts_type; euler with step doubling, sdc with its sweep estimate
+
+
 @dataclass(frozen=True)
 class Case:
-    """One run of the study: degree p, adaptivity rate tol = E / T, repulsion radius R (0: off)."""
+    """One run of the study: degree p, adaptivity rate tol = E / T, repulsion radius R (0: off),
+    time integrator scheme (-ts_type, default options of each)."""
 
     p: int
     tol: float
     R: float = 0.0
+    scheme: str = "euler"
 
     @property
     def key(self):
-        return f"p{self.p}_tol{self.tol:g}_R{self.R:g}"
+        return f"p{self.p}_tol{self.tol:g}_R{self.R:g}" + ("" if self.scheme == "euler" else f"_{self.scheme}")
 
 
 # The paper's Table 3 (T = 160, p = 32 reference, E / T from 1.25e-3 to 1.5e-2) rescaled to a
@@ -92,7 +97,8 @@ def run_case(scene, case, horizon=None, extra_options=None):
     """Run one case; returns a dict of the measured figures (status 'ok' or 'failed: ...')."""
     from .simulation import Run
     sc = case_scene(scene, case, horizon)
-    given = {"-ves_adapt": "doubling", "-ves_adapt_tol": case.tol}
+    given = {"-ts_type": case.scheme, "-ves_adapt": "doubling" if case.scheme == "euler" else "sweeps",
+             "-ves_adapt_tol": case.tol}
     given.update(extra_options or {})
     opts = optmod.read_options(optmod.dict_getter(given), sc)
     rec = Recorder(opts["q_near"])
@@ -106,6 +112,8 @@ def run_case(scene, case, horizon=None, extra_options=None):
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     steps = rec.steps
     solves_per_try = 3 if given["-ves_adapt"] == "doubling" else 1
+    if case.scheme == "sdc":        # vesflow.sdc: M (2K + 1) + 1 solves per step, M = nodes - 1
+        solves_per_try *= (opts["ts_sdc_nodes"] - 1) * (2 * opts["ts_sdc_sweeps"] + 1) + 1
     n_solves = solves_per_try * len(steps)
     its = sum(int(r[3]) for r in steps)
     reasons = {}
@@ -121,7 +129,8 @@ def run_case(scene, case, horizon=None, extra_options=None):
                  "volume_error": float(np.abs(S.volume() / run.volume0 - 1).max())}
     tm = rec.timings or (run.timers.as_dict() if run is not None else {})
     gaps = [f["min_gap"] for f in rec.frames if np.isfinite(f["min_gap"])]
-    return {"p": case.p, "tol": case.tol, "R": case.R, "E": case.tol * sc.time.horizon, "status": status,
+    return {"p": case.p, "tol": case.tol, "R": case.R, "scheme": case.scheme, "E": case.tol * sc.time.horizon,
+            "status": status,
             "horizon": sc.time.horizon, "accepted": sum(1 for r in steps if r[2]), "rejected": reasons,
             "n_solves": n_solves, "avg_its": its / max(n_solves, 1), "wall": wall, "cpu": cpu,
             "timers": {k: float(v) for k, v in tm.items()}, "min_gap": min(gaps) if gaps else None,
@@ -158,7 +167,7 @@ def cached_run(scene, case, out, horizon=None, fresh=False, log=print):
     return res
 
 
-COLUMNS = ("p", "E", "tol", "R", "error", "N_Tstep", "N_iter", "T_solve", "T_setup", "T_self", "T_near",
+COLUMNS = ("scheme", "p", "E", "tol", "R", "error", "N_Tstep", "N_iter", "T_solve", "T_setup", "T_self", "T_near",
            "T_far", "T_repar", "cpu", "rejected", "min_gap", "status")
 
 
@@ -167,7 +176,7 @@ def table_rows(results, ref):
     for r in results:
         tm = r["timers"]
         err = position_error(r, ref)
-        rows.append({"p": r["p"], "E": r["E"], "tol": r["tol"], "R": r["R"], "error": err,
+        rows.append({"scheme": r.get("scheme", "euler"), "p": r["p"], "E": r["E"], "tol": r["tol"], "R": r["R"], "error": err,
                      "N_Tstep": r["n_solves"], "N_iter": r["avg_its"], "T_solve": r["wall"],
                      "T_setup": tm.get("setup", 0.0), "T_self": tm.get("self", 0.0), "T_near": tm.get("near", 0.0),
                      "T_far": tm.get("far", 0.0), "T_repar": tm.get("repar", 0.0), "cpu": r["cpu"],
@@ -211,14 +220,15 @@ def plot(rows, path, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6.4, 4.6))
-    for R, marker in ((0.0, "o"), (None, "s")):
-        sel = [r for r in rows if r["error"] is not None and ((r["R"] == 0) == (R == 0.0))]
+    for scheme, R, marker in (("euler", 0.0, "o"), ("euler", None, "s"), ("sdc", 0.0, "^"), ("sdc", None, "D")):
+        sel = [r for r in rows if r["error"] is not None and ((r["R"] == 0) == (R == 0.0))
+               and r.get("scheme", "euler") == scheme]
         if sel:
             sc = ax.scatter([r["T_solve"] for r in sel], [r["error"] for r in sel], c=[r["p"] for r in sel],
                             cmap="viridis", marker=marker, s=46, vmin=6, vmax=16,
-                            label="no repulsion" if R == 0.0 else "repulsion")
+                            label=f"{scheme}, " + ("no repulsion" if R == 0.0 else "repulsion"))
             for r in sel:
-                ax.annotate(f"p{r['p']} E/T={r['tol']:g}" + (f" R={r['R']:g}" if r["R"] else ""),
+                ax.annotate(f"{scheme} p{r['p']} E/T={r['tol']:g}" + (f" R={r['R']:g}" if r["R"] else ""),
                             (r["T_solve"], r["error"]), fontsize=6, xytext=(3, 3), textcoords="offset points")
     front = pareto(rows)
     if front:
@@ -266,7 +276,7 @@ def accuracy_cost(scene_path, out, quick=False, reference=None, cases=None, fres
         w.writeheader()
         w.writerows(rows)
     T = ref["horizon"]
-    fixed_p = [r for r in rows if r["p"] == reference.p and r["R"] == 0 and r["error"]]
+    fixed_p = [r for r in rows if r["p"] == reference.p and r["R"] == 0 and r["error"] and r["scheme"] == "euler"]
     lines = [f"# Accuracy and cost: {scene.title}", "",
              f"Scene `{scene_path}`, horizon T = {T:g}, reference {reference.key} "
              f"({ref['n_solves']} solves, {ref['wall']:.0f} s).  Machine: {platform.machine()}, "
@@ -274,7 +284,7 @@ def accuracy_cost(scene_path, out, quick=False, reference=None, cases=None, fres
              f"OMP_NUM_THREADS = {os.environ.get('OMP_NUM_THREADS', 'unset')}.", "",
              "E = tol * T is the paper's tolerance over the horizon; tol = `-ves_adapt_tol`; times in seconds "
              "(wall, PETSc log events); N_Tstep counts implicit solves (3 per attempted step with step "
-             "doubling); rejected: reason:count; min_gap: smallest surface gap seen at the frames.", "",
+             "doubling, 11 per sdc step with 3 nodes and 2 sweeps); rejected: reason:count; min_gap: smallest surface gap seen at the frames.", "",
              markdown(rows)]
     if len(fixed_p) >= 2:
         lines += ["", f"Fitted at p = {reference.p}, no repulsion: error ~ E^{fitted_rate([r['E'] for r in fixed_p], [r['error'] for r in fixed_p]):.2f}, "
@@ -283,7 +293,7 @@ def accuracy_cost(scene_path, out, quick=False, reference=None, cases=None, fres
     front = pareto(rows)
     if front:
         lines += ["", "Pareto front (cheapest run for each accuracy): " +
-                  ", ".join(f"p{r['p']} E/T={r['tol']:g} R={r['R']:g} ({r['error']:.1e}, {r['T_solve']:.0f} s)"
+                  ", ".join(f"{r['scheme']} p{r['p']} E/T={r['tol']:g} R={r['R']:g} ({r['error']:.1e}, {r['T_solve']:.0f} s)"
                             for r in front)]
     with open(os.path.join(out, "accuracy_cost.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
@@ -293,20 +303,23 @@ def accuracy_cost(scene_path, out, quick=False, reference=None, cases=None, fres
 
 
 def parse_case(text):
-    """'p,tol,R' -> Case (one-line SceneError on bad input)."""
+    """'p,tol[,R[,scheme]]' -> Case (one-line SceneError on bad input)."""
     from .errors import SceneError
+    items = text.split(",")
+    scheme = items.pop() if len(items) == 4 else "euler"
     try:
-        parts = [float(x) for x in text.split(",")]
+        parts = [float(x) for x in items]
         if len(parts) not in (2, 3) or parts[0] != int(parts[0]) or parts[0] < 2 or parts[1] <= 0 \
-                or (len(parts) == 3 and parts[2] < 0):
+                or (len(parts) == 3 and parts[2] < 0) or scheme not in SCHEMES:
             raise ValueError
     except ValueError:
-        raise SceneError(f"case {text!r}: expected p,tol[,R] with integer p >= 2, tol > 0, R >= 0") from None
-    return Case(int(parts[0]), parts[1], parts[2] if len(parts) == 3 else 0.0)
+        raise SceneError(f"case {text!r}: expected p,tol[,R[,scheme]] with integer p >= 2, tol > 0, R >= 0, "
+                         f"scheme in {', '.join(SCHEMES)}") from None
+    return Case(int(parts[0]), parts[1], parts[2] if len(parts) == 3 else 0.0, scheme)
 
 
-USAGE = ("usage: vesflow study accuracy-cost [SCENE.toml] [--out DIR] [--quick] [--ref p,tol,R] "
-         "[--case p,tol,R ...] [--fresh]")
+USAGE = ("usage: vesflow study accuracy-cost [SCENE.toml] [--out DIR] [--quick] [--ref p,tol,R[,scheme]] "
+         "[--case p,tol,R[,scheme] ...] [--fresh]  (scheme: euler or sdc, -ts_type)")
 
 
 def main(argv):
