@@ -115,7 +115,7 @@ class _PerVesicle:
         timers = getattr(op.lp, "timers", None) or _NoTimers()
         with timers.stage("pc_lu"):
             lu = map_vesicles(lambda k: lu_factor(self.finish_block(block_at(*self.parts[k], dt), op),
-                                                  check_finite=False), range(len(self.parts)))
+                                                  check_finite=False), range(len(self.parts)), op.p)
         self.factors.append((dt, lu))
         del self.factors[:-MAX_DT_FACTORS]
         return lu
@@ -187,7 +187,7 @@ class BlockJacobi(_PerVesicle):
 
     def block_parts(self, op):
         q = pc_grid(op.p, op.q_force)
-        return map_vesicles(lambda v: op.self_block_parts(v, q), range(op.N))
+        return map_vesicles(lambda v: op.self_block_parts(v, q), range(op.N), op.p)
 
 
 class SphereSpectral(_PerVesicle):

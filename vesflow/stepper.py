@@ -144,7 +144,8 @@ class Stepper:
         """
         from petsc4py import PETSc
         surface = self.surface if surface is None else surface
-        adapt_openmp()
+        q = self.lp_settings.q_far or 2 * self.p
+        adapt_openmp(pairs=(surface.n_vesicles * 2 * q * (q + 1)) * (surface.n_vesicles * 2 * self.p * (self.p + 1)))
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
         n = surface.n_vesicles * op.block

@@ -74,23 +74,38 @@ def free_cores():
     return max(1, min(ncpu, int(ncpu - load + 1.0 + 0.5)))
 
 
-def adapt_openmp():
+MIN_PAIRS_OPENMP = 5e5   # far-field source-target pairs below which one thread is faster
+
+
+def adapt_openmp(pairs=None):
     """Set the OpenMP kernels' threads to min(OMP_NUM_THREADS, free_cores()) for what follows
     (Stepper.solve calls it once per solve): on a machine whose other cores are busy, threads
-    that wait at the end of every parallel loop for a descheduled sibling only add time."""
+    that wait at the end of every parallel loop for a descheduled sibling only add time; and
+    one thread when the far field has fewer than MIN_PAIRS_OPENMP source-target pairs (the
+    kernels' loops are then too short to pay for waking a thread: two vesicles at p = 6, 1e5
+    pairs, ran 7% slower on 2 threads of an idle machine)."""
     from ._kernels import series
     n = min(openmp_threads(), free_cores())
+    if pairs is not None and pairs < MIN_PAIRS_OPENMP:
+        n = 1
     series.set_num_threads(n)
     return n
 
 
-def map_vesicles(fn, items):
+MIN_P_THREADS = 10     # below this degree a vesicle's set-up is too small for a thread to pay
+
+
+def map_vesicles(fn, items, p=None):
     """[fn(i) for i in items], on up to openmp_threads() Python threads (one item per task,
     results in order), but no more than free_cores(): on a machine whose other cores are busy
     the threads only contend (measured, p = 12 pair at load 6: 2 threads 5.6-8.0 s vs 1 thread
-    4.5-4.9 s); in this thread when one is all there is."""
+    4.5-4.9 s); in this thread when one is all there is, or when the degree p is below
+    MIN_P_THREADS (idle machine, 2 threads vs 1: p = 6, 20 steps 0.74-0.78 s vs 0.69-0.70 s;
+    p = 12: 2.75-3.12 s vs 3.79-3.89 s)."""
     items = list(items)
     n = min(openmp_threads(), len(items), free_cores())
+    if p is not None and p < MIN_P_THREADS:
+        n = 1
     if n <= 1:
         return [fn(i) for i in items]
     pool = _state["pool"]

@@ -78,7 +78,7 @@ class SelfOperators:
         self.single = np.zeros((nves, 3 * C, 3 * C)) if want_single else None
         self.double = np.zeros((nves, 3 * C, 3 * C)) if want_double else None
         from ..threads import map_vesicles
-        ops = map_vesicles(lambda v: self._assemble(coeffs[v], want_single, want_double), range(nves))
+        ops = map_vesicles(lambda v: self._assemble(coeffs[v], want_single, want_double), range(nves), p)
         for v, (S, D) in enumerate(ops):
             if want_single:
                 self.single[v] = S / viscosity
