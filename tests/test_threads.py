@@ -57,12 +57,12 @@ def test_map_vesicles_keeps_order_and_uses_no_more_threads_than_free_cores(monke
     def work(i):
         names.add(threading.current_thread().name)
         return i * i
-    monkeypatch.setattr(os, "getloadavg", lambda: (0.2, 0.0, 0.0))       # idle machine: 2 threads
+    monkeypatch.setattr(threads, "other_runnable", lambda: 0)              # idle machine: 2 threads
     assert threads.free_cores() == 2
     assert threads.map_vesicles(work, range(7)) == [i * i for i in range(7)]
     assert names and all(n.startswith("vesflow") for n in names)
     names.clear()
-    monkeypatch.setattr(os, "getloadavg", lambda: (1.9, 0.0, 0.0))       # the other core is busy: serial
+    monkeypatch.setattr(threads, "other_runnable", lambda: 1)              # the other core is busy: serial
     assert threads.free_cores() == 1
     assert threads.map_vesicles(work, range(3)) == [0, 1, 4]
     assert names == {threading.current_thread().name}
@@ -73,9 +73,9 @@ def test_openmp_threads_follow_the_idle_cores(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "2")
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
     try:
-        monkeypatch.setattr(os, "getloadavg", lambda: (0.1, 0.0, 0.0))
+        monkeypatch.setattr(threads, "other_runnable", lambda: 0)
         assert threads.adapt_openmp() == 2 and series.get_max_threads() == 2
-        monkeypatch.setattr(os, "getloadavg", lambda: (3.0, 0.0, 0.0))
+        monkeypatch.setattr(threads, "other_runnable", lambda: 2)
         assert threads.adapt_openmp() == 1 and series.get_max_threads() == 1
     finally:
         series.set_num_threads(threads.openmp_threads())

@@ -8,7 +8,8 @@
 - Per-vesicle set-up (self operators, preconditioner blocks) runs on the same number of
   Python threads, one vesicle each (`map_vesicles`): numpy releases the GIL inside its
   array operations and BLAS calls, which is where that work is; only as many as there are
-  idle cores (the load average says), so that a shared machine is not oversubscribed.
+  idle cores (the machine's runnable threads right now), so that a shared machine is not
+  oversubscribed.
 - BLAS (numpy's OpenBLAS: the batched per-vesicle GEMV/GEMM of the self operators, the
   transforms, the block assembly and LU): one thread by default (-ves_blas_threads).  Its
   matrices are small and per vesicle: threads there cost more in start-up and busy-waiting
@@ -63,15 +64,22 @@ def describe():
             f"BLAS {blas if blas is not None else 'environment default'}")
 
 
-def free_cores():
-    """Cores not busy with other work: the cores minus the 1-minute load average, plus the one
-    this process is using (at least 1)."""
-    ncpu = os.cpu_count() or 1
+def other_runnable():
+    """Runnable threads of the machine right now besides this one (/proc/loadavg's running
+    count less one; the 1-minute load average less one where /proc is not there)."""
     try:
-        load = os.getloadavg()[0]
-    except OSError:
-        return ncpu
-    return max(1, min(ncpu, int(ncpu - load + 1.0 + 0.5)))
+        with open("/proc/loadavg") as f:
+            return int(f.read().split()[3].split("/")[0]) - 1
+    except (OSError, ValueError, IndexError):
+        return os.getloadavg()[0] - 1.0
+
+
+def free_cores():
+    """Cores not busy with other work: the cores minus other_runnable(), at least 1.  (The
+    1-minute load average lags a process that just started by a minute, which made two
+    threads run 4-9% slower next to one busy process: p = 12 pair, measured.)"""
+    ncpu = os.cpu_count() or 1
+    return max(1, min(ncpu, int(ncpu - other_runnable() + 0.5)))
 
 
 MIN_PAIRS_OPENMP = 5e5   # far-field source-target pairs below which one thread is faster
