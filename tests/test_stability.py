@@ -547,3 +547,26 @@ def test_sphere_sweep_fast(case):
 @pytest.mark.parametrize("case", _sweep_cases(), ids=lambda c: "-".join(map(str, c)))
 def test_sphere_sweep(case):
     run_sweep_case(*case, p=8, T=0.5)
+
+
+def test_a_run_without_a_writer_lands_on_the_output_times():
+    """In-process runs without an output writer (benchmarks, studies) step as a run with one:
+    frame 0 sets the next output time (it stayed at 0 and the first landing step had dt = 0)."""
+    from vesflow import options as O, scene as S
+    from vesflow.simulation import Run
+    text = """
+[discretization]
+p = 4
+[time]
+horizon = 0.2
+dt = 0.05
+[output]
+every = 0.1
+[[vesicle]]
+shape = "prolate"
+reduced_volume = 0.9
+"""
+    sc = S.parse_scene(text)
+    run = Run(sc, O.read_options(O.dict_getter({"ves_adapt": "none"}), sc))
+    run.run()
+    assert run.t == pytest.approx(0.2) and run.counts["accepted"] == 4 and run.next_frame == pytest.approx(0.3)

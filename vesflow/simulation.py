@@ -268,7 +268,7 @@ class Run:
         t_start = _time.perf_counter()
         if self.first_step_at is None:
             self.first_step_at = t_start
-        if self.n_accepted == 0 and self.t == 0.0 and self.writer is not None:
+        if self.n_accepted == 0 and self.t == 0.0:             # frame 0 (without a writer: the next output time)
             self._frame()
         rejects_in_row = 0
         max_steps = self.opts["ts_max_steps"]
