@@ -276,11 +276,11 @@ def test_collision_detector_rejects_steps_and_run_ends_without_intersection(dz):
     the other surface.  Measured (dz = 0.15 / 0.22): 2 / 1 collision rejections at dt = 1.13,
     min frame gap 4.0e-3 / 5.3e-3.  The window is wide: dz = 0.12 ... 0.25 all end at T = 6
     with 1-3 collision rejections (docs/robustness.md, section 3).
-    Frames every 2 time units: since steps land on the output times (issue 15) a frame every
-    0.1 caps the steps at 0.1 and the overshooting steps this test is about never happen.
-    Measured with the landing steps and the normal-part error estimate: one collision rejection
-    (t = 2.0, dt = 1.6) for dz = 0.15 / 0.22, min frame gap 2.3e-3 / 4.0e-2, T = 6 reached."""
-    run, rec, failure = _run_pair(harness.pair_scene(1.3, dz, 6, 6.0, every=2.0, dt=0.05),
+    Frames only at 0 and 6: since steps land on the output times (issue 15) a frame every 0.1
+    caps the steps at 0.1 and the overshooting steps this test is about never happen.
+    Measured with the landing steps: the same rejections as before them (dz = 0.15: t = 2.70 and
+    3.26 at dt = 1.12; dz = 0.22: t = 2.73 at dt = 1.14), T = 6 reached, no contact."""
+    run, rec, failure = _run_pair(harness.pair_scene(1.3, dz, 6, 6.0, every=6.0, dt=0.05),
                                   **{"-ves_adapt_tol": 0.15})
     gaps = [f["min_gap"] for f in rec.frames]
     collided = [(r[0], r[1]) for r in rec.steps if not r[2] and r[5] == "collision"]
@@ -314,11 +314,11 @@ def test_close_pair_without_repulsion_ends_without_contact():
     then contact at t = 5.45 and exit 3.  Measured now: it ends at T = 5.8 with min gap 0.0126,
     no contact, 4 error-estimate rejections.  (With the default options the same pair gets 13
     collision rejections, recovered, then contact at t = 5.0: docs/robustness.md.)
-    Frames every 0.5: with the steps landing on output times every 0.1 (issue 15) the step
-    sequence changes and this pair, at the resolution limit of p = 6, comes into contact at
-    t = 5.13 (exit 3, the last good state saved); every 0.5 / 1.0 it ends at T = 5.8 without
-    contact, min frame gap 0.040 / 0.037 (measured with the landing steps)."""
-    run, rec, failure = _run_pair(harness.pair_scene(1.3, 0.3, 6, 5.8, every=0.5, dt=0.05),
+    Frames every 1: with the steps landing on output times every 0.1 or 0.5 (issue 15) the step
+    sequence changes and this pair, at the resolution limit of p = 6, comes into contact near
+    t = 5.1-5.4 (exit 3, the last good state saved); every 1 it ends at T = 5.8 without contact,
+    min frame gap 0.023 (measured with the landing steps)."""
+    run, rec, failure = _run_pair(harness.pair_scene(1.3, 0.3, 6, 5.8, every=1.0, dt=0.05),
                                   **{"-ves_reparam": "off", "-ves_adapt_tol": 0.05})
     gaps = [f["min_gap"] for f in rec.frames]
     report("pair without repulsion, p = 6, dz = 0.3", t_end=run.t, counts=run.counts,
@@ -326,7 +326,7 @@ def test_close_pair_without_repulsion_ends_without_contact():
            max_contacts=max(f["contacts"] for f in rec.frames), failure=failure)
     assert failure is None and run.t == pytest.approx(5.8)
     assert min(gaps) > 0 and max(f["contacts"] for f in rec.frames) == 0
-    assert min(gaps) < 0.05                                     # a close approach (0.040 measured)
+    assert min(gaps) < 0.05                                     # a close approach (0.023 measured)
 
 
 @pytest.mark.slow

@@ -341,7 +341,7 @@ def test_restart_continues_the_frame_sequence(tmp_path):
     scene.write_text(RELAX.replace("horizon = 20.0", "horizon = 6.0"))
     whole, part, same, other = (tmp_path / f"{n}.h5" for n in ("whole", "part", "same", "other"))
     assert cli.main(["run", str(scene), "-o", str(whole)]) == 0
-    assert cli.main(["run", str(scene), "-o", str(part), "-ts_max_steps", "10"]) == 0
+    assert cli.main(["run", str(scene), "-o", str(part), "-ts_max_steps", "14"]) == 0
     t_stop = float(read_checkpoint(str(part))["time"])
     assert cli.main(["run", "--restart", str(part), "-o", str(same), "-ts_max_steps", "1000"]) == 0
     assert cli.main(["run", "--restart", str(part), "-o", str(other), "-ts_max_steps", "1000",
