@@ -153,9 +153,11 @@ class Transform:
         if p == q:
             nm[q] = 2.0 * q
         aw = 2.0 * np.pi / (c[:, 0] ** 2 * nm)
-        self._fourier_analysis_cos = self.cos_m * aw[:, None]
-        self._fourier_analysis_sin = self.sin_m * aw[:, None]
+        self._trig_analysis = np.ascontiguousarray(np.concatenate([self.cos_m, self.sin_m], axis=0) * np.tile(aw, 2)[:, None])
         self._dphi = mm
+        # the stacked [cos; sin] matrices of the Fourier step: values and d/dphi (synth_first)
+        self._trig_values = np.ascontiguousarray(np.concatenate([self.cos_m, self.sin_m], axis=0))
+        self._trig_dphi = np.ascontiguousarray(np.concatenate([-mm * self.sin_m, mm * self.cos_m], axis=0))
 
     # ---------------------------------------------------------------- padding
     def pad(self, coeffs):
@@ -184,14 +186,16 @@ class Transform:
         Y = np.matmul(table, X)                                                  # (M, I, B)
         return Y.transpose(2, 0, 1).reshape(lead + (self.p + 1, table.shape[1]))
 
-    def _fourier_step(self, F, cosm, sinm):
-        # F (..., 2, M, I) -> (..., I, J): one GEMM with the stacked trig matrices
+    def _fourier_step(self, F, cosm, sinm=None):
+        # F (..., 2, M, I) -> (..., I, J) with the stacked trig matrices [cosm; sinm] (2M, J), or
+        # cosm alone when it is that stack already: one GEMM per leading index on the transposed
+        # view (BLAS reads it in place; a copy into (B I, 2M) costs more than the GEMM saves)
         lead = F.shape[:-3]
         M, I = F.shape[-2], F.shape[-1]
         B = math.prod(lead)
-        A = F.reshape(B, 2 * M, I).transpose(0, 2, 1).reshape(B * I, 2 * M)
-        out = A @ np.concatenate([cosm, sinm], axis=0)
-        return out.reshape(lead + (I, cosm.shape[1]))
+        trig = cosm if sinm is None else np.concatenate([cosm, sinm], axis=0)
+        out = np.matmul(F.reshape(B, 2 * M, I).transpose(0, 2, 1), trig)
+        return out.reshape(lead + (I, trig.shape[1]))
 
     def synth(self, coeffs, d=None):
         """Q: values on the q-grid, (..., npts).  d selects a derivative: None, 't', 'p', 'tt', 'tp', 'pp'."""
@@ -213,13 +217,11 @@ class Transform:
         """Values and first derivatives (values, d/dtheta, d/dphi), each (..., npts): two
         Legendre steps and one Fourier GEMM for the values and the phi derivative together."""
         padded = self.pad(coeffs)
-        m = self._dphi
         F0 = self._legendre_step(padded, self.lam)
         F1 = self._legendre_step(padded, self.dlam)
-        both = self._fourier_step(F0, np.concatenate([self.cos_m, -m * self.sin_m], axis=1),
-                                  np.concatenate([self.sin_m, m * self.cos_m], axis=1))
-        g0, gp = both[..., :self.nlon], both[..., self.nlon:]
-        gt = self._fourier_step(F1, self.cos_m, self.sin_m)
+        g0 = self._fourier_step(F0, self._trig_values)
+        gp = self._fourier_step(F0, self._trig_dphi)
+        gt = self._fourier_step(F1, self._trig_values)
         shape = gt.shape[:-2] + (self.npts,)
         return g0.reshape(shape), gt.reshape(shape), gp.reshape(shape)
 
@@ -251,28 +253,29 @@ class Transform:
         L2 projection onto it for fields of degree <= q.
         """
         values = np.asarray(values, dtype=float)
-        return self._analysis_like(values, self._fourier_analysis_cos, self._fourier_analysis_sin,
-                                   self.glw, full)
+        return self._analysis_like(values, self._trig_analysis, self.glw, full)
 
-    def _analysis_like(self, values, acos, asin, latw, full):
-        """Fourier projection with (acos, asin), latitude weights, then the transposed Legendre step."""
+    def _analysis_like(self, values, trig, latw, full):
+        """Fourier projection with trig = [acos; asin] (2M, nlon), latitude weights, then the
+        transposed Legendre step.  Layout (s = cos/sin, m, b = batch, i = latitude) throughout,
+        so that both GEMMs read their operands in place and the result is gathered once."""
         lead = values.shape[:-1]
         B = math.prod(lead)
-        g = values.reshape(B * self.nlat, self.nlon)
-        F = g @ np.concatenate([acos, asin], axis=0).T                     # (B*I, 2M)
         M = self.p + 1
-        F = F.reshape(B, self.nlat, 2 * M)
+        g = values.reshape(B * self.nlat, self.nlon)
+        F = trig @ g.T                                                       # (2M, B*I): [s, m, b, i]
+        F = F.reshape(2, M, B, self.nlat)
         if latw is not None:
-            F = F * latw[None, :, None]
-        Xm = F.reshape(B, self.nlat, 2, M).transpose(3, 1, 2, 0).reshape(M, self.nlat, 2 * B)   # (M, I, 2B)
-        padded = np.matmul(self._lam_T, Xm)                                 # (M, N, 2B)
-        padded = padded.reshape(M, M, 2, B).transpose(3, 2, 0, 1).reshape(lead + (2, M, M))
-        return self.unpad(padded, full=full)
+            F *= latw
+        padded = np.matmul(self._lam_T, F.transpose(0, 1, 3, 2))             # (2, M, N, B)
+        k = self.nfull if full else self.ncoef
+        out = padded.reshape(2 * M * M, B)[self._pad_flat[:k]]              # (k, B)
+        return np.ascontiguousarray(out.T).reshape(lead + (k,))
 
     def synth_transpose(self, values, full=False):
         """Q^T: the transpose of synth as a linear map, (..., npts) -> (..., C) or (..., (p+1)^2)."""
         values = np.asarray(values, dtype=float)
-        return self._analysis_like(values, self.cos_m, self.sin_m, None, full)
+        return self._analysis_like(values, self._trig_values, None, full)
 
     def integrate(self, values):
         """Integral over the unit sphere of a q-grid field (..., npts)."""
@@ -372,17 +375,51 @@ def rotate_z(coeffs, p, alpha):
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    ns, ms, ks = index_tables(p)
+    cos_idx, sin_idx, m_cos, m0 = _z_rotation_index(p)
     alpha = np.asarray(alpha, dtype=float)[..., None]
     out = np.empty_like(coeffs)
-    cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
-    sin_idx = cos_idx + (p + 1 - ms[cos_idx])                 # the sine partner follows the cosine block
     a, b = coeffs[..., cos_idx], coeffs[..., sin_idx]
-    ca, sa = np.cos(ms[cos_idx] * alpha), np.sin(ms[cos_idx] * alpha)
+    ang = m_cos * alpha
+    ca, sa = np.cos(ang), np.sin(ang)
     out[..., cos_idx] = a * ca + b * sa
     out[..., sin_idx] = b * ca - a * sa
-    m0 = np.nonzero(ms == 0)[0]
     out[..., m0] = coeffs[..., m0]
+    return out
+
+
+@lru_cache(maxsize=None)
+def _z_rotation_index(p):
+    """rotate_z's index sets of the full layout: cosine coefficients with m > 0, their sine
+    partners (which follow the cosine block), their orders m, and the m = 0 coefficients."""
+    ns, ms, ks = index_tables(p)
+    cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
+    sin_idx = cos_idx + (p + 1 - ms[cos_idx])
+    return cos_idx, sin_idx, ms[cos_idx].astype(float), np.nonzero(ms == 0)[0]
+
+
+@lru_cache(maxsize=None)
+def degree_order(p):
+    """(perm, offsets): the full layout's indices sorted by degree n (within a degree in the
+    order of wigner_blocks' idx), and where each degree starts in that order ((p+2,))."""
+    ns = index_tables(p)[0]
+    perm = np.concatenate([np.nonzero(ns == n)[0] for n in range(p + 1)])
+    offsets = np.concatenate([[0], np.cumsum([np.count_nonzero(ns == n) for n in range(p + 1)])])
+    perm.flags.writeable = False
+    return perm, offsets
+
+
+def apply_degree_blocks(coeffs, p, blocks, transpose=False):
+    """coeffs (..., (p+1)^2) times the block-diagonal matrix of wigner_blocks-like ``blocks``
+    ((idx, B_n) per degree) from the right: out[..., idx_n] = coeffs[..., idx_n] @ B_n^T (or
+    @ B_n with transpose).  One gather into degree order, contiguous slices, one scatter."""
+    perm, offs = degree_order(p)
+    x = coeffs[..., perm]
+    y = np.empty_like(x)
+    for n, (_, block) in enumerate(blocks):
+        a, b = offs[n], offs[n + 1]
+        np.matmul(x[..., a:b], block if transpose else block.T, out=y[..., a:b])
+    out = np.empty_like(x)
+    out[..., perm] = y
     return out
 
 
@@ -391,10 +428,7 @@ def rotate_y(coeffs, p, beta):
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    out = np.empty_like(coeffs)
-    for idx, block in wigner_blocks(p, float(beta)):
-        out[..., idx] = coeffs[..., idx] @ block.T
-    return out
+    return apply_degree_blocks(coeffs, p, wigner_blocks(p, float(beta)))
 
 
 def rotate_to_pole(coeffs, p, theta0, phi0):
