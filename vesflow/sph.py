@@ -154,10 +154,15 @@ class Transform:
             nm[q] = 2.0 * q
         aw = 2.0 * np.pi / (c[:, 0] ** 2 * nm)
         self._trig_analysis = np.ascontiguousarray(np.concatenate([self.cos_m, self.sin_m], axis=0) * np.tile(aw, 2)[:, None])
-        self._dphi = mm
         # the stacked [cos; sin] matrices of the Fourier step: values and d/dphi (synth_first)
         self._trig_values = np.ascontiguousarray(np.concatenate([self.cos_m, self.sin_m], axis=0))
-        self._trig_dphi = np.ascontiguousarray(np.concatenate([-mm * self.sin_m, mm * self.cos_m], axis=0))
+        # synthesis: rows in (m, s) order (s = cos, sin), for values, d/dphi and d2/dphi2
+        inter = lambda c, s_: np.ascontiguousarray(np.stack([c, s_], axis=1).reshape(2 * (p + 1), -1))
+        self._trig_ms = inter(self.cos_m, self.sin_m)
+        self._trig_ms_p = inter(-mm * self.sin_m, mm * self.cos_m)
+        self._trig_ms_pp = inter(-mm * mm * self.cos_m, -mm * mm * self.sin_m)
+        self._dlam_T = np.ascontiguousarray(np.swapaxes(self.dlam, 1, 2))
+        self._d2lam_T = np.ascontiguousarray(np.swapaxes(self.d2lam, 1, 2))
 
     # ---------------------------------------------------------------- padding
     def pad(self, coeffs):
@@ -178,71 +183,70 @@ class Transform:
         return padded[..., ks, ms, ns]
 
     # ---------------------------------------------------------------- synthesis
-    def _legendre_step(self, padded, table):
-        # padded (..., 2, M, N) ; table (M, I, N) -> (..., 2, M, I): one batched GEMM over m
-        lead = padded.shape[:-2]
-        B = math.prod(lead)
-        X = padded.reshape(B, self.p + 1, self.p + 1).transpose(1, 2, 0)           # (M, N, B)
-        Y = np.matmul(table, X)                                                  # (M, I, B)
-        return Y.transpose(2, 0, 1).reshape(lead + (self.p + 1, table.shape[1]))
+    def _pad_msbn(self, coeffs):
+        """Flat (..., k) -> padded (M [m], 2 [cos/sin], B, N [n]) with B the product of the
+        leading axes: the layout in which both synthesis GEMMs read their operands in place."""
+        coeffs = np.asarray(coeffs, dtype=float)
+        k = coeffs.shape[-1]
+        if k not in (self.ncoef, self.nfull):
+            raise ValueError(f"expected {self.ncoef} or {self.nfull} coefficients for p = {self.p}, got {k}")
+        B = math.prod(coeffs.shape[:-1])
+        M = self.p + 1
+        ks, ms, ns = (a[:k] for a in self._pad_index)
+        out = np.zeros((M, 2, B, M))
+        out[ms, ks, :, ns] = coeffs.reshape(B, k).T
+        return out.reshape(M, 2 * B, M)
 
-    def _fourier_step(self, F, cosm, sinm=None):
-        # F (..., 2, M, I) -> (..., I, J) with the stacked trig matrices [cosm; sinm] (2M, J), or
-        # cosm alone when it is that stack already: one GEMM per leading index on the transposed
-        # view (BLAS reads it in place; a copy into (B I, 2M) costs more than the GEMM saves)
-        lead = F.shape[:-3]
-        M, I = F.shape[-2], F.shape[-1]
-        B = math.prod(lead)
-        trig = cosm if sinm is None else np.concatenate([cosm, sinm], axis=0)
-        out = np.matmul(F.reshape(B, 2 * M, I).transpose(0, 2, 1), trig)
-        return out.reshape(lead + (I, trig.shape[1]))
+    def _synth_layout(self, padded, table_T, trig, lead):
+        """Legendre step (one GEMM per m: (2B, N) @ (N, I)) then the Fourier step as one GEMM of
+        the (B I, 2M) matrix read in place (column index (m, s)) with trig ((m, s), J) rows."""
+        Z = np.matmul(padded, table_T)                                   # (M, 2B, I) = [m, s, b, i]
+        M, B2, I = Z.shape
+        out = Z.reshape(2 * M, (B2 // 2) * I).T @ trig                   # (B I, J)
+        return out.reshape(lead + (I * trig.shape[1],))
 
     def synth(self, coeffs, d=None):
         """Q: values on the q-grid, (..., npts).  d selects a derivative: None, 't', 'p', 'tt', 'tp', 'pp'."""
-        padded = self.pad(coeffs)
-        table = {None: self.lam, "p": self.lam, "pp": self.lam,
-                 "t": self.dlam, "tp": self.dlam, "tt": self.d2lam}[d]
-        F = self._legendre_step(padded, table)
-        m = self._dphi
-        if d in (None, "t", "tt"):
-            cosm, sinm = self.cos_m, self.sin_m
-        elif d in ("p", "tp"):
-            cosm, sinm = -m * self.sin_m, m * self.cos_m
-        else:  # 'pp'
-            cosm, sinm = -m * m * self.cos_m, -m * m * self.sin_m
-        g = self._fourier_step(F, cosm, sinm)
-        return g.reshape(g.shape[:-2] + (self.npts,))
+        coeffs = np.asarray(coeffs, dtype=float)
+        table = {None: self._lam_T, "p": self._lam_T, "pp": self._lam_T,
+                 "t": self._dlam_T, "tp": self._dlam_T, "tt": self._d2lam_T}[d]
+        trig = {None: self._trig_ms, "t": self._trig_ms, "tt": self._trig_ms,
+                "p": self._trig_ms_p, "tp": self._trig_ms_p, "pp": self._trig_ms_pp}[d]
+        return self._synth_layout(self._pad_msbn(coeffs), table, trig, coeffs.shape[:-1])
 
     def synth_first(self, coeffs):
         """Values and first derivatives (values, d/dtheta, d/dphi), each (..., npts): two
-        Legendre steps and one Fourier GEMM for the values and the phi derivative together."""
-        padded = self.pad(coeffs)
-        F0 = self._legendre_step(padded, self.lam)
-        F1 = self._legendre_step(padded, self.dlam)
-        g0 = self._fourier_step(F0, self._trig_values)
-        gp = self._fourier_step(F0, self._trig_dphi)
-        gt = self._fourier_step(F1, self._trig_values)
-        shape = gt.shape[:-2] + (self.npts,)
-        return g0.reshape(shape), gt.reshape(shape), gp.reshape(shape)
+        Legendre steps and three Fourier GEMMs."""
+        coeffs = np.asarray(coeffs, dtype=float)
+        lead = coeffs.shape[:-1]
+        padded = self._pad_msbn(coeffs)
+        Z0 = np.matmul(padded, self._lam_T)
+        Z1 = np.matmul(padded, self._dlam_T)
+        M, B2, I = Z0.shape
+        A0 = Z0.reshape(2 * M, (B2 // 2) * I).T
+        A1 = Z1.reshape(2 * M, (B2 // 2) * I).T
+        shape = lead + (self.npts,)
+        return ((A0 @ self._trig_ms).reshape(shape), (A1 @ self._trig_ms).reshape(shape),
+                (A0 @ self._trig_ms_p).reshape(shape))
 
     def synth_all(self, coeffs, values=True):
         """Values and first and second derivatives at once: dict with keys '', 't', 'p', 'tt', 'tp', 'pp'
         ('' left out when not values)."""
-        padded = self.pad(coeffs)
-        m = self._dphi
+        coeffs = np.asarray(coeffs, dtype=float)
+        lead = coeffs.shape[:-1]
+        padded = self._pad_msbn(coeffs)
+        A = {}
+        for name, table in (("0", self._lam_T), ("1", self._dlam_T), ("2", self._d2lam_T)):
+            Z = np.matmul(padded, table)
+            M, B2, I = Z.shape
+            A[name] = Z.reshape(2 * M, (B2 // 2) * I).T
         out = {}
-        F0 = self._legendre_step(padded, self.lam)
-        F1 = self._legendre_step(padded, self.dlam)
-        F2 = self._legendre_step(padded, self.d2lam)
-        cs = (self.cos_m, self.sin_m)
-        dcs = (-m * self.sin_m, m * self.cos_m)
-        ddcs = (-m * m * self.cos_m, -m * m * self.sin_m)
-        for key, F, trig in (("", F0, cs), ("p", F0, dcs), ("pp", F0, ddcs),
-                             ("t", F1, cs), ("tp", F1, dcs), ("tt", F2, cs)):
+        shape = lead + (self.npts,)
+        for key, a, trig in (("", "0", self._trig_ms), ("p", "0", self._trig_ms_p), ("pp", "0", self._trig_ms_pp),
+                             ("t", "1", self._trig_ms), ("tp", "1", self._trig_ms_p), ("tt", "2", self._trig_ms)):
             if key == "" and not values:
                 continue
-            g = self._fourier_step(F, *trig)
-            out[key] = g.reshape(g.shape[:-2] + (self.npts,))
+            out[key] = (A[a] @ trig).reshape(shape)
         return out
 
     # ---------------------------------------------------------------- analysis
