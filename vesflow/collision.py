@@ -11,15 +11,19 @@ from . import sph
 from .layerpot.near import Projection, near_distance, near_pairs_images
 
 
-def signed_gaps(surface, q, period=None):
+def signed_gaps(surface, q, period=None, vesicles=None):
     """Signed distances of every near (point, other vesicle) pair: (pairs (P, 2), distances (P,)).
-    ``period``: triply periodic box (minimum image, vesflow.layerpot.near.near_pairs_images)."""
+    ``period``: triply periodic box (minimum image, vesflow.layerpot.near.near_pairs_images).
+    ``vesicles``: only the p-grid points of these vesicles (an MPI rank's, vesflow.parallel)
+    against every surface; pairs[:, 0] then counts the points of those vesicles."""
     p, N = surface.p, surface.n_vesicles
     Tq = sph.transform(p, q)
     src = np.ascontiguousarray(surface.points(q).reshape(-1, 3))
     src_id = np.repeat(np.arange(N, dtype=np.int64), Tq.npts)
-    trg = np.ascontiguousarray(surface.points().reshape(-1, 3))
-    trg_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p).npts)
+    mine = np.arange(N) if vesicles is None else np.asarray(vesicles, dtype=np.int64)
+    pts = surface.points()
+    trg = np.ascontiguousarray((pts if vesicles is None else pts[mine]).reshape(-1, 3))
+    trg_id = np.repeat(mine.astype(np.int64), sph.transform(p).npts)
     h = float(near_distance(surface.area(), q).max())
     src_off = np.arange(N + 1, dtype=np.int64) * Tq.npts
     pairs, tpos = near_pairs_images(trg, trg_id, src, src_id, src_off, h, period)
@@ -32,9 +36,9 @@ def signed_gaps(surface, q, period=None):
     return pairs, proj.signed_distance
 
 
-def contacts(surface, q, period=None):
-    """Number of p-grid points on or behind another vesicle's surface."""
-    _, d = signed_gaps(surface, q, period)
+def contacts(surface, q, period=None, vesicles=None):
+    """Number of p-grid points (of `vesicles`, default all) on or behind another vesicle's surface."""
+    _, d = signed_gaps(surface, q, period, vesicles)
     return int(np.count_nonzero(d <= 0))
 
 
