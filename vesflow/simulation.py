@@ -17,6 +17,7 @@ from . import collision, sph
 from .correction import correct_area_volume, restore_spheres
 from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
+from .io.peer import PeerWriter
 from .layerpot.evaluator import Settings
 from .operator import VesicleParams
 from .shapes import make_shape
@@ -412,7 +413,7 @@ class Run:
         if self.writer is None:
             self.next_frame = next_output_time(self.t, self.every)
             return
-        if getattr(self.writer, "peer", False):     # an MPI rank other than 0: rank 0 writes
+        if isinstance(self.writer, PeerWriter):     # an MPI rank other than 0: rank 0 writes
             self.next_frame = next_output_time(self.t, self.every)
             self.rows = []
             self.writer.write_checkpoint(self.checkpoint())

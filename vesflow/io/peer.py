@@ -12,7 +12,7 @@ from .writer import OutputWriter
 
 
 class PeerWriter:
-    peer = True                     # Run skips forming the frame's fields for it
+    """Run skips forming a frame's fields for it."""
 
     def __init__(self, checkpoint_every=None, last_checkpoint_time=None):
         self.checkpoint_every = None if checkpoint_every is None else float(checkpoint_every)
