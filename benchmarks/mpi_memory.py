@@ -9,9 +9,9 @@ Per rank = base + (vesicles it owns) x owned + (all vesicles) x replicated + Ewa
 operator 3C x 3C, preconditioner parts A0 4C x 4C and S Mb 3C x 3C, LU factors 4C x 4C per
 kept dt) plus the rest, measured: the peak RSS of benchmarks/mpi_scaling.py at 8 and 64
 vesicles on 1 rank and 64 on 2 (--measured, GB) fixes the base and the two slopes.
-The Ewald grid (periodic Taylor-Green: the only far field there) is replicated per rank:
-mode grid of the parameters vesflow would choose, 3 complex components, plus the NUFFT's
-upsampled grid (1.25^3 of it for ducc0 at eps >= 1e-9... taken as 2x the mode grid).
+The Ewald grid (periodic Taylor-Green: the only far field there) is replicated per rank: the
+mode grid of the parameters vesflow would choose (3 complex components) plus the NUFFT's
+upsampled grid, taken as twice the mode grid (a model, not measured at this size).
 """
 import argparse
 import math

@@ -6,7 +6,7 @@ import pytest
 from vesflow import shapes, sph
 from vesflow.layerpot.evaluator import LayerPotentials, Settings
 from vesflow.operator import VesicleParams
-from vesflow.parallel import Partition, balanced_blocks, make_partition, morton_order, world_comm
+from vesflow.parallel import balanced_blocks, make_partition, morton_order, world_comm
 from vesflow.stepper import Physics, Stepper
 from vesflow.surface import Surface
 
@@ -81,3 +81,17 @@ def test_solve_on_two_ranks_equals_one_process(part):
     assert two.last.its == one.last.its
     assert np.abs(two.coeffs - one.coeffs).max() <= 1e-12
     assert np.abs(two.last.sigma - one.last.sigma).max() <= 1e-10 * np.abs(one.last.sigma).max()
+
+
+def test_contacts_across_ranks_sum_to_the_one_process_count(part):
+    """Vesicle 1 (rank 1) pushed into vesicle 0 (rank 0): each rank counts its own points
+    behind another surface, with the other rank's surfaces gathered."""
+    from vesflow import collision
+    c = coeffs()
+    c[1, 0, 0] -= 0.3 * np.sqrt(4 * np.pi)        # 0.3 closer in x (degree-0 coefficient)
+    S = Surface(c, P)
+    pairs, d = collision.signed_gaps(S, 2 * P)
+    mine = collision.contacts(Surface(c, P), 2 * P, part=part)
+    assert part.sum(mine) == np.count_nonzero(d <= 0) > 0
+    own = np.isin(pairs[:, 0] // sph.transform(P).npts, part.idx)
+    assert mine == np.count_nonzero(d[own] <= 0)

@@ -187,8 +187,7 @@ class Run:
             if self.part is None:
                 return collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene)) > 0
             # this rank's points against every surface, the counts summed over the ranks
-            mine = collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene),
-                                      vesicles=self.part.idx)
+            mine = collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene), part=self.part)
             return self.part.sum(mine) > 0
 
     def _attempt(self, dt):

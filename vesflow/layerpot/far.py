@@ -186,7 +186,7 @@ class FarField:
             raise SceneError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
         self.eps = float(eps)
         self.period = period
-        ns, nt = self.src.shape[0], self.trg.shape[0]
+        ns = self.src.shape[0]
         whole = self.trg if whole_targets is None else _points("whole_targets", whole_targets)
         nt_whole = whole.shape[0]
         t_ewald, params = None, None
