@@ -313,8 +313,11 @@ def residual_modes(op, r, bnorm, x=None):
     vesicle 1 velocity rows degree 0 (6.4e-01); solution: largest vesicle 0 tension degree 0
     (100% of its norm: the constant-tension mode)"."""
     b = max(bnorm, 1e-300)
+    ids = getattr(op.lp, "idx", None)        # with a partition: this rank's vesicles (their scene numbers)
+    name = (lambda v: v) if ids is None else (lambda v: int(ids[v]))
     parts, nv, nt = _split_by_degree(op, r)
     (v, rows, n), worst = max(parts.items(), key=lambda kv: kv[1])
+    v = name(v)
     rows = "divergence" if rows == "tension" else rows
     out = (f"residual: velocity rows {nv / b:.1e}, divergence rows {nt / b:.1e}, largest vesicle {v} {rows} "
            f"rows degree {n} ({worst / b:.1e})")
@@ -322,6 +325,7 @@ def residual_modes(op, r, bnorm, x=None):
         parts, _, _ = _split_by_degree(op, x)
         total = np.sqrt(sum(w ** 2 for w in parts.values()))
         (v, kind, n), big = max(parts.items(), key=lambda kv: kv[1])
+        v = name(v)
         what = ": the constant-tension mode" if (kind, n) == ("tension", 0) else ""
         out += (f"; solution: largest vesicle {v} {kind} degree {n} "
                 f"({100 * big ** 2 / max(total ** 2, 1e-300):.0f}% of its norm{what})")
