@@ -17,7 +17,6 @@ from . import collision, sph
 from .correction import correct_area_volume, restore_spheres
 from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
-from .io.peer import PeerWriter
 from .layerpot.evaluator import Settings
 from .operator import VesicleParams
 from .shapes import make_shape
@@ -412,7 +411,7 @@ class Run:
         if self.writer is None:
             self.next_frame = next_output_time(self.t, self.every)
             return
-        if isinstance(self.writer, PeerWriter):     # an MPI rank other than 0: rank 0 writes
+        if self.part is not None and _is_peer(self.writer):     # an MPI rank other than 0: rank 0 writes
             self.next_frame = next_output_time(self.t, self.every)
             self.rows = []
             self.writer.write_checkpoint(self.checkpoint())
@@ -479,6 +478,11 @@ def _step_q(q, err, tol, lo, hi):
     if err < 0.1 * tol:
         return max(q - 1, lo)
     return q
+
+
+def _is_peer(writer):
+    from .io.peer import PeerWriter
+    return isinstance(writer, PeerWriter)
 
 
 def _rows(a, idx):
