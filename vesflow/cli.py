@@ -58,8 +58,9 @@ def main(argv=None):
         return e.exit_status
     except KeyboardInterrupt:
         _quiet_petsc_exit()
-        print("\nvesflow: interrupted; continue from the last checkpoint with vesflow run --restart FILE",
-              file=sys.stderr)
+        if not _QUIET:
+            print("\nvesflow: interrupted; continue from the last checkpoint with vesflow run --restart FILE",
+                  file=sys.stderr)
         return 130
     except Exception as e:                  # a bug outside a run's steps: one line too
         _quiet_petsc_exit()
