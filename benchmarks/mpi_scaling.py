@@ -65,7 +65,8 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=2)
     ap.add_argument("--dt", type=float, default=0.1)
     ap.add_argument("--far", default="direct", help="-ves_far (direct, fmm, ewald, auto)")
-    ap.add_argument("extra", nargs="*", help="more options as name=value (e.g. ves_pc_lag=1)")
+    ap.add_argument("--pc", default=None, help="-pc_python_type (default: the run's choice, BlockJacobi)")
+    ap.add_argument("extra", nargs="*", help="more vesflow options as name=value (e.g. ves_pc_lag=1)")
     args = ap.parse_args(argv)
 
     from vesflow import threads
@@ -83,6 +84,9 @@ def main(argv=None):
         k, v = kv.split("=", 1)
         opts[k] = v
     PETSc.Options().setValue("ksp_rtol", 1e-6)
+    if args.pc:
+        PETSc.Options().setValue("pc_type", "python")
+        PETSc.Options().setValue("pc_python_type", args.pc)
     sc = S.parse_scene(text)
     run = Run(sc, O.read_options(O.dict_getter(opts), sc))
     comm.Barrier()
@@ -95,6 +99,7 @@ def main(argv=None):
     rss_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2 ** 20       # kB -> GB
     nloc = len(st.part.idx) if st.part is not None else args.nves
     line = (f"ranks={size} rank={rank} nves={args.nves} local={nloc} p={args.p} far={st.lp_last.far.backend} "
+            f"pc={args.pc or 'default'} "
             f"steps={steps} its={st.ksp_its} wall_s={wall:.2f} cpu_s={cpu:.2f} s_per_step={wall / steps:.3f} "
             f"cpu_per_step={cpu / steps:.3f} s_per_gmres_it={st.ksp_seconds / max(st.ksp_its, 1):.4f} "
             f"peak_rss_gb={rss_gb:.2f}\n  stages (s): " + " ".join(f"{s}={tot[s]:.2f}" for s in STAGES)
