@@ -77,7 +77,8 @@ def main(argv=None):
         per = base + n_own * (owned + extra_lu) + N * repl + grid
         print(f"{R:6d} {n_own:6d} {per / GB:12.2f} {per * R / GB:26.1f}")
     # the options that bring one node's total under 24 GB (16 ranks, say)
-    print("options (per owned vesicle):")
+    print("options (per owned vesicle; the dense arrays each removes, counted from their shapes: the measured\n"
+          "peak falls less, SphereSpectral at 8 vesicles by 11 MB per vesicle, not 26; docs/parallel.md):")
     opts = {
         "as is": owned + extra_lu,
         "SphereSpectral PC (no per-vesicle blocks)": owned + extra_lu - parts - (args.lu_kept) * dense_bytes(p)[2],
