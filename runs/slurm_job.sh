@@ -12,12 +12,18 @@
 # its time limit loses only the steps since the last checkpoint (-ves_checkpoint_every,
 # default: every frame).  Extra options: OPTS (options file), EXTRA (more options).
 #
-# One process, OpenMP threads in the kernels: vesflow does not distribute vesicles over MPI
-# ranks yet and refuses to run under more than one (exit status 2).  Edit the #SBATCH lines.
+# MPI: the vesicles are divided among the --ntasks ranks (contiguous blocks in Morton order,
+# docs/parallel.md); each rank may also use --cpus-per-task OpenMP threads in the kernels.
+# Under SLURM the ranks are started by srun; elsewhere the same line is
+#     mpiexec -n 16 vesflow run SCENE -o OUT -options_file runs/production.opts -log_view
+# A job may continue a run written with another number of ranks (the file holds the whole
+# state): change --ntasks between jobs at will.  Rank 0 writes the one HDF5 file and prints.
+# At most one rank per vesicle (the default scene has two; runs/taylor_green.toml: e.g.
+# --ntasks=16 --cpus-per-task=1).  Edit the #SBATCH lines.
 #SBATCH --job-name=vesflow
 #SBATCH --nodes=1
-#SBATCH --ntasks=1
-#SBATCH --cpus-per-task=16
+#SBATCH --ntasks=2
+#SBATCH --cpus-per-task=8
 #SBATCH --time=24:00:00
 #SBATCH --output=vesflow-%j.log
 set -euo pipefail
@@ -36,12 +42,19 @@ export OMP_NUM_THREADS=${SLURM_CPUS_PER_TASK:-${OMP_NUM_THREADS:-1}}
 export OMP_PROC_BIND=${OMP_PROC_BIND:-close} OMP_PLACES=${OMP_PLACES:-cores}
 mkdir -p "$(dirname "$OUT")"
 
+NTASKS=${SLURM_NTASKS:-1}
+if [ -n "${SLURM_JOB_ID:-}" ] && command -v srun >/dev/null; then
+    LAUNCH=(srun --ntasks="$NTASKS" --cpus-per-task="$OMP_NUM_THREADS")
+else
+    LAUNCH=(mpiexec -n "$NTASKS")
+fi
+
 # PETSc options go on the command line as usual (-ksp_*, -pc_type, -log_view ...).
 if [ -f "$OUT" ] && python -c "import sys, vesflow.io as io; io.read_checkpoint(sys.argv[1])" "$OUT" 2>/dev/null; then
-    echo "continuing $OUT"
+    echo "continuing $OUT on $NTASKS ranks"
     # shellcheck disable=SC2086
-    srun --ntasks=1 --cpus-per-task="$OMP_NUM_THREADS" vesflow run --restart "$OUT" $EXTRA -log_view
+    "${LAUNCH[@]}" vesflow run --restart "$OUT" $EXTRA -log_view
 else
     # shellcheck disable=SC2086
-    srun --ntasks=1 --cpus-per-task="$OMP_NUM_THREADS" vesflow run "$SCENE" -o "$OUT" -options_file "$OPTS" $EXTRA -log_view
+    "${LAUNCH[@]}" vesflow run "$SCENE" -o "$OUT" -options_file "$OPTS" $EXTRA -log_view
 fi

@@ -70,7 +70,7 @@ def test_slurm_template_starts_then_continues_a_run(tmp_path):
     script = RUNS / "slurm_job.sh"
     assert subprocess.run(["bash", "-n", str(script)]).returncode == 0
     text = script.read_text()
-    assert "#SBATCH --ntasks=1" in text and "--restart" in text and "-options_file" in text
+    assert "#SBATCH --ntasks=" in text and "mpiexec -n" in text and "--restart" in text and "-options_file" in text
     bindir = tmp_path / "bin"
     bindir.mkdir()
     srun = bindir / "srun"

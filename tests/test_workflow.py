@@ -310,13 +310,15 @@ def test_a_bad_option_in_an_options_file_is_exit_2_and_one_line(tmp_path, text, 
     assert r.returncode == 2 and "cannot read it" in one_line_error(r)
 
 
-def test_mpi_is_refused_with_one_line(tmp_path):
+def test_more_mpi_processes_than_vesicles_is_refused_with_one_line(tmp_path):
+    """Each rank owns at least one vesicle (vesflow.parallel); one vesicle on two ranks: exit 2,
+    one line (from rank 0 only), no output file.  Runs on two ranks: tests/test_mpi_runs.py."""
     mpiexec = Path(sys.executable).parent / "mpiexec"
     if not mpiexec.exists():
         pytest.skip("no mpiexec in the environment")
-    r = subprocess.run([str(mpiexec), "-n", "2"] + VESFLOW + ["run", "-o", str(tmp_path / "m.h5")],
+    r = subprocess.run([str(mpiexec), "-n", "2"] + VESFLOW + ["run", "runs/relaxation.toml", "-o", str(tmp_path / "m.h5")],
                        capture_output=True, text=True, timeout=120, env=ENV, cwd=ROOT)
-    assert r.returncode == 2 and "MPI processes" in one_line_error(r)
+    assert r.returncode == 2 and "2 MPI processes for 1 vesicles" in one_line_error(r)
     assert not (tmp_path / "m.h5").exists()
 
 

@@ -13,7 +13,8 @@ USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc
        vesflow check SCENE.toml [-ves_ and PETSc options]
        vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none] [--camera follow|fit|fixed]
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
-       vesflow run -help          every vesflow option with its default"""
+       vesflow run -help          every vesflow option with its default
+       mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/parallel.md)"""
 
 
 _QUIET = False          # ranks other than 0 print no error messages
@@ -21,8 +22,9 @@ _T_MAIN = None          # when main() started: the time to the first step is pri
 
 
 def main(argv=None):
-    global _T_MAIN
+    global _T_MAIN, _QUIET
     _T_MAIN = time.perf_counter()
+    _QUIET = _launcher_rank() not in (None, 0)   # errors before MPI starts: rank 0 prints them
     from .threads import early_environment
     early_environment()                      # before numpy is loaded (vesflow.threads)
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -56,8 +58,9 @@ def main(argv=None):
         return e.exit_status
     except KeyboardInterrupt:
         _quiet_petsc_exit()
-        print("\nvesflow: interrupted; continue from the last checkpoint with vesflow run --restart FILE",
-              file=sys.stderr)
+        if not _QUIET:
+            print("\nvesflow: interrupted; continue from the last checkpoint with vesflow run --restart FILE",
+                  file=sys.stderr)
         return 130
     except Exception as e:                  # a bug outside a run's steps: one line too
         _quiet_petsc_exit()
@@ -68,6 +71,14 @@ def main(argv=None):
             print(f"vesflow: unexpected error: {error_reason(e)} (-ves_traceback shows the full trace)",
                   file=sys.stderr)
         return 3
+
+
+def _launcher_rank():
+    """This process's rank as mpiexec / srun set it in the environment (None: not launched so)."""
+    for name in ("PMI_RANK", "OMPI_COMM_WORLD_RANK", "PMIX_RANK"):
+        if os.environ.get(name, "").isdigit():
+            return int(os.environ[name])
+    return None
 
 
 def _wants_traceback(args):
@@ -224,37 +235,54 @@ def cmd_run(rest):
     if restart is not None and (sc.p != int(prev["p"]) or sc.n_vesicles != int(prev["n_vesicles"])):
         raise OptionError(f"-ves_p = {sc.p}: a restart keeps the p = {int(prev['p'])} of {restart}")
     PETSc = _init_petsc(petsc_args)
-    if PETSc.COMM_WORLD.getSize() > 1:
+    size = PETSc.COMM_WORLD.getSize()
+    rank0 = PETSc.COMM_WORLD.getRank() == 0
+    if size > 1:          # vesicles over the ranks (vesflow.parallel); messages from rank 0
         global _QUIET
-        _QUIET = PETSc.COMM_WORLD.getRank() != 0
-        raise SceneError(f"{PETSc.COMM_WORLD.getSize()} MPI processes: parallel runs are not available yet "
-                         "(the vesicle partition is a later issue); run one process and use OMP_NUM_THREADS threads")
+        _QUIET = not rank0
+        if size > sc.n_vesicles:
+            raise SceneError(f"{size} MPI processes for {sc.n_vesicles} vesicles: each rank needs at least one "
+                             f"vesicle; run at most {sc.n_vesicles} processes")
+        PETSc.COMM_WORLD.barrier()      # every rank has read the --restart file before rank 0 opens it
     from .solver import check_options
     check_options(petsc_args, origins=origins)      # PETSc's options too, before the output file exists
     from .io import OutputWriter
     from .simulation import Run, check_available
     check_available(sc, opts)                # before the output file exists
     ck_every = opts["checkpoint_every"]
-    if restart is not None:
-        out = out or restart
-        if os.path.abspath(out) != os.path.abspath(restart):    # continue in a copy, keep the original
-            import shutil
+    failure = None
+    try:
+        if not rank0:                            # rank 0 writes the one file
+            from .io import PeerWriter
+            out = out or (restart if restart is not None else sc.output.file)
+            writer = PeerWriter(ck_every, None if checkpoint is None else float(checkpoint["time"]))
+        elif restart is not None:
+            out = out or restart
+            if os.path.abspath(out) != os.path.abspath(restart):    # continue in a copy, keep the original
+                import shutil
+                os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+                shutil.copyfile(restart, out)
+            writer = OutputWriter.reopen(out, options_text=shlex.join(cmdline), checkpoint_every=ck_every,
+                                         restart_of=restart)
+            checkpoint = writer.checkpoint
+        else:
+            from . import __version__
+            out = out or sc.output.file
             os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-            shutil.copyfile(restart, out)
-        writer = OutputWriter.reopen(out, options_text=shlex.join(cmdline), checkpoint_every=ck_every,
-                                     restart_of=restart)
-        checkpoint = writer.checkpoint
-    else:
-        from . import __version__
-        out = out or sc.output.file
-        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-        writer = OutputWriter(out, scene_text=sc.text or scenemod.DEFAULT_SCENE_TEXT,
-                              options_text=shlex.join(petsc_args), version=__version__, p=sc.p,
-                              n_vesicles=sc.n_vesicles, periodic_length=sc.periodic_length,
-                              checkpoint_every=ck_every)
-        writer.write_attrs(options_resolved=shlex.join(opts.as_argv()))
+            writer = OutputWriter(out, scene_text=sc.text or scenemod.DEFAULT_SCENE_TEXT,
+                                  options_text=shlex.join(petsc_args), version=__version__, p=sc.p,
+                                  n_vesicles=sc.n_vesicles, periodic_length=sc.periodic_length,
+                                  checkpoint_every=ck_every)
+            writer.write_attrs(options_resolved=shlex.join(opts.as_argv()))
+    except Exception as e:                   # rank 0 could not create / reopen the file
+        failure = e
+    if size > 1:             # every rank learns it (no rank left waiting), rank 0 reports it
+        said = PETSc.COMM_WORLD.tompi4py().bcast(None if failure is None else str(failure), root=0)
+        if said is not None and failure is None:
+            raise SceneError(said)
+    if failure is not None:
+        raise failure
     progress = opts["progress"] == "on" or (opts["progress"] == "auto" and sys.stderr.isatty())
-    rank0 = PETSc.COMM_WORLD.getRank() == 0
     if rank0:
         print(f"vesflow: {sc.title}: {sc.n_vesicles} vesicles, p = {sc.p}, T = {sc.time.horizon:g} -> {out}"
               + (f" (restart from t = {float(checkpoint['time']):g})" if restart else ""))
@@ -279,7 +307,12 @@ def cmd_run(rest):
     except Exception as e:                   # a PETSc error or a bug: one line, the last good state saved
         if opts["traceback"]:
             traceback.print_exc()
-        raise _run_error(e, run, writer, out) from e
+        err = _run_error(e, run, writer, out)
+        if size > 1:         # possibly on this rank only: say so, and end every rank (no rank left waiting)
+            print(f"vesflow: rank {PETSc.COMM_WORLD.getRank()}: {type(err).__name__}: {err}", file=sys.stderr)
+            sys.stderr.flush()
+            PETSc.COMM_WORLD.tompi4py().Abort(err.exit_status)
+        raise err from e
     finally:
         writer.close()
     if rank0:

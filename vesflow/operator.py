@@ -32,6 +32,10 @@ class VesicleParams:
     def alpha(self):
         return 0.5 * (1.0 + self.lam)
 
+    def take(self, idx):
+        """The parameters of the vesicles idx (this rank's, vesflow.parallel)."""
+        return VesicleParams(self.kappa[idx], self.lam[idx], self.drho[idx], self.mu)
+
 
 class StepOperator:
     """MatPython context: mult applies the left side above (geometry frozen at X^n)."""

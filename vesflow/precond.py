@@ -99,12 +99,14 @@ class _PerVesicle:
 
     @staticmethod
     def rebuild_cost(op):
-        """A rebuild in GMRES iterations of this system (costs.pc_rebuild_iterations)."""
+        """A rebuild in GMRES iterations of this system (costs.pc_rebuild_iterations), for the
+        whole system (all ranks' vesicles and near pairs): every rank, and one process, decide alike."""
         from .costs import pc_rebuild_iterations
         lp = op.lp
         far = getattr(getattr(lp, "far", None), "backend", "direct")
-        return pc_rebuild_iterations(op.N, op.p, getattr(lp, "q_far", 2 * op.p), bool(lp.want_double),
-                                     getattr(lp, "n_near_pairs", 0), far,
+        return pc_rebuild_iterations(getattr(lp, "N_total", op.N), op.p, getattr(lp, "q_far", 2 * op.p),
+                                     bool(lp.want_double),
+                                     getattr(lp, "n_near_pairs_total", getattr(lp, "n_near_pairs", 0)), far,
                                      getattr(getattr(lp, "settings", None), "fmm_eps", 1e-8))
 
     def _factors_for(self, op):

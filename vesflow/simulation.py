@@ -71,8 +71,11 @@ class Run:
         params = vesicle_params(scene)
         phys = physics(scene)
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
+        from .parallel import make_partition, world_size
+        # the vesicles over the MPI ranks (None with one process: nothing gathered)
+        self.part = make_partition(Surface(coeffs, self.p).centroid()) if world_size() > 1 else None
         self.stepper = Stepper(coeffs, self.p, params, phys, settings, coupling=opts["coupling"],
-                               timers=self.timers)
+                               timers=self.timers, part=self.part)
         self.sdc = None                   # -ts_type sdc: the SDC steps of the stepper
         self.err_order = 1                # k of the step update dt (beta tol dt / err)^(1/k)
         if opts["ts_type"] == "sdc":
@@ -180,7 +183,11 @@ class Run:
 
     def _touching(self):
         with self.timers.stage("collision"):
-            return collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene)) > 0
+            if self.part is None:
+                return collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene)) > 0
+            # this rank's points against every surface, the counts summed over the ranks
+            mine = collision.contacts(self.stepper.surface, self.q_near, scene_period(self.scene), part=self.part)
+            return self.part.sum(mine) > 0
 
     def _attempt(self, dt):
         """_try(dt), noting the attempt (for `position`); if it raises, the stepper is put back
@@ -244,6 +251,15 @@ class Run:
         the corrected normal part let the accuracy-cost study's steps grow (p = 12, E = 0.07:
         219 solves instead of 306) and its error stall near 4e-3 whatever E (E^0.37).
         """
+        area0, volume0 = self.area0, self.volume0
+        if self.part is not None:         # this rank's vesicles, the largest error over the ranks
+            idx = self.part.idx
+            one, two, area0, volume0 = one[idx], two[idx], _rows(area0, idx), _rows(volume0, idx)
+            return self.part.max(self._vesicle_doubling_error(one, two, area0, volume0))
+        return self._vesicle_doubling_error(one, two, area0, volume0)
+
+    def _vesicle_doubling_error(self, one, two, area0, volume0):
+        """_doubling_error of the vesicles of one and two (area0, volume0 theirs)."""
         raw = np.linalg.norm(np.moveaxis(Tgrid(self.p, two - one), -2, -1), axis=-1).max(axis=1)
         near_sphere = Surface(one, self.p).reduced_volume() > 1.0 - NEAR_SPHERE
         if not near_sphere.any():
@@ -251,9 +267,9 @@ class Run:
         if self.opts["correct"] == "area_volume":
             with self.timers.stage("other"):
                 o = self.opts
-                one = correct_area_volume(one, self.p, self.area0, self.volume0,
+                one = correct_area_volume(one, self.p, area0, volume0,
                                           tol=o["correct_tol"], max_its=o["correct_max_its"])[0]
-                two = correct_area_volume(two, self.p, self.area0, self.volume0,
+                two = correct_area_volume(two, self.p, area0, volume0,
                                           tol=o["correct_tol"], max_its=o["correct_max_its"])[0]
         d = np.moveaxis(Tgrid(self.p, two - one), -2, -1)                  # (N, M, 3) on the p-grid
         normal = Surface(one, self.p).geometry(self.p).normal
@@ -363,7 +379,16 @@ class Run:
     def _post_processed(self, coeffs, reparam, project_its=1):
         """Reparameterize (if reparam), then restore area and volume (the reparameterization
         moves points tangentially but changes A and V at the discretization error, ~1e-6; the
-        correction after it leaves them at -ves_correct_tol)."""
+        correction after it leaves them at -ves_correct_tol).  With a partition each rank
+        processes its vesicles (both act per vesicle) and the results are gathered."""
+        if self.part is None:
+            return self._post_process(coeffs, reparam, project_its, self.area0, self.volume0)
+        idx = self.part.idx
+        mine = self._post_process(coeffs[idx], reparam, project_its, _rows(self.area0, idx), _rows(self.volume0, idx))
+        with self.timers.stage("gather"):
+            return self.part.gather(mine)
+
+    def _post_process(self, coeffs, reparam, project_its, area0, volume0):
         o = self.opts
         if reparam:
             with self.timers.stage("reparam"):
@@ -373,7 +398,7 @@ class Run:
                                                  project_its=project_its)
         if o["correct"] == "area_volume":
             with self.timers.stage("correction"):
-                coeffs, _, _ = correct_area_volume(coeffs, self.p, self.area0, self.volume0,
+                coeffs, _, _ = correct_area_volume(coeffs, self.p, area0, volume0,
                                                    tol=o["correct_tol"], max_its=o["correct_max_its"])
         return coeffs
 
@@ -385,6 +410,11 @@ class Run:
     def _write_frame(self):
         if self.writer is None:
             self.next_frame = next_output_time(self.t, self.every)
+            return
+        if self.part is not None and _is_peer(self.writer):     # an MPI rank other than 0: rank 0 writes
+            self.next_frame = next_output_time(self.t, self.every)
+            self.rows = []
+            self.writer.write_checkpoint(self.checkpoint())
             return
         p = self.p
         S = self.stepper.surface
@@ -448,6 +478,17 @@ def _step_q(q, err, tol, lo, hi):
     if err < 0.1 * tol:
         return max(q - 1, lo)
     return q
+
+
+def _is_peer(writer):
+    from .io.peer import PeerWriter
+    return isinstance(writer, PeerWriter)
+
+
+def _rows(a, idx):
+    """a[idx] for a per-vesicle array, a itself for a scalar."""
+    a = np.asarray(a)
+    return a[idx] if a.ndim else a
 
 
 def Tgrid(p, c):

@@ -46,8 +46,10 @@ class Stepper:
     """Holds the state (position coefficients) and advances it with first-order steps."""
 
     def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
-                 q_force=None, timers=None, ksp_prefix=None):
+                 q_force=None, timers=None, ksp_prefix=None, part=None):
         self.coeffs = np.array(coeffs, dtype=float)
+        self.part = part            # vesflow.parallel.Partition (None: one process owns every vesicle)
+        self.params_local = params if part is None else params.take(part.idx)
         self.p = p
         self.params = params
         self.physics = physics or Physics(viscosity=params.mu)
@@ -63,6 +65,8 @@ class Stepper:
         self.cond_estimate = None   # of the last solve's preconditioned operator (_condition_estimate)
         self.cond_max = 0.0         # the largest of them so far
         self.lp_cache_size = 1      # layer potentials kept for this many surfaces (SDC: one per node)
+        self.ksp_seconds = 0.0      # wall seconds inside KSPSolve, and its iterations, summed over the solves
+        self.ksp_its = 0
         self._lp_cache = []
 
     @property
@@ -92,46 +96,48 @@ class Stepper:
         lp = next((c[1] for c in cache if c[0] == key and c[1].surface is surface), None)
         if lp is None:
             lp = LayerPotentials(surface, lam=self.params.lam, viscosity=self.params.mu,
-                                 settings=self.lp_settings, timers=self.timers)
+                                 settings=self.lp_settings, timers=self.timers, part=self.part)
         else:
             cache.remove((key, lp))
         cache.append((key, lp))                 # most recently used last
         del cache[:-self.lp_cache_size]
-        op = StepOperator(surface, self.params, dt, lp, self.q_force, self.coupling)
+        op = StepOperator(lp.local, self.params_local, dt, lp, self.q_force, self.coupling)
         return lp, op
 
     def explicit_traction(self, surface, geo):
         """f_b(X^n) + f_g + f_r on the force grid (N, npts, 3)."""
-        f = forces.bending_force(geo, self.params.kappa)
+        prm = self.params_local
+        f = forces.bending_force(geo, prm.kappa)
         if self.physics.gravity is not None and np.any(self.params.drho != 0):
-            f = f + forces.gravity_force(geo, self.params.drho, self.physics.gravity)
+            f = f + forces.gravity_force(geo, prm.drho, self.physics.gravity)
         if self.extra_force is not None:
             f = f + self.extra_force(surface, geo)
         return f
 
     def rhs(self, surface, lp, op):
+        """Right side of the step for the vesicles of surface (op.surface: this rank's)."""
         self.timers.start("rhs")
         Tp = sph.transform(self.p)
         X = surface.points()
         if self.physics.flow is None:                     # no [flow]: nothing to evaluate
-            b1 = np.zeros(self.coeffs.shape)
+            b1 = np.zeros(surface.coeffs.shape)
         else:
             uinf = background_velocity(self.physics.flow, X, **self.physics.flow_args)
             b1 = Tp.analysis(np.moveaxis(uinf, -1, -2))
         f = op.coeffs_vec(self.explicit_traction(surface, op.geo))
         self.timers.stop("rhs")
         b1 = b1 + lp.apply(f, None)
-        if self.coupling == "explicit" and self.last is not None and surface.n_vesicles > 1:
+        if self.coupling == "explicit" and self.last is not None and lp.N_total > 1:
             # inter-vesicle terms of the previous solution moved to the right side
-            fi = op.membrane_force(self.last.u, self.last.sigma)
-            g = -self.last.u if lp.want_double else None
+            fi = op.membrane_force(_mine(self.last.u, lp), _mine(self.last.sigma, lp))
+            g = -_mine(self.last.u, lp) if lp.want_double else None
             b1 = b1 + lp.apply(fi, g) - lp.self_part(fi, g)
         return op.join(b1, np.zeros((surface.n_vesicles, sph.n_coeffs(self.p))))
 
     def correction_rhs(self, lp, op, displacement):
         """Right side S[B[e]] of the correction equation for a displacement e (N, 3, C):
         the single layer of its linearized bending force (3.12) on the frozen geometry."""
-        f = forces.linearized_bending_force(op.geo, self.params.kappa, op.grid_vec(displacement))
+        f = forces.linearized_bending_force(op.geo, self.params_local.kappa, op.grid_vec(_mine(displacement, lp)))
         b1 = lp.apply(op.coeffs_vec(f), None)
         return op.join(b1, np.zeros((op.N, sph.n_coeffs(self.p))))
 
@@ -149,17 +155,19 @@ class Stepper:
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
         n = surface.n_vesicles * op.block
-        A = PETSc.Mat().createPython([n, n], sphere_constraints(surface, op, self.lock_spheres), comm=PETSc.COMM_SELF)
+        comm = PETSc.COMM_SELF if self.part is None else PETSc.COMM_WORLD
+        sizes = n if self.part is None else (op.N * op.block, n)     # the rows of this rank's vesicles
+        A = PETSc.Mat().createPython([sizes, sizes], sphere_constraints(op.surface, op, self.lock_spheres), comm=comm)
         A.setUp()
         b = A.createVecRight()
         x = A.createVecLeft()
-        b.setArray(self.rhs(surface, lp, op) if displacement is None else self.correction_rhs(lp, op, displacement))
+        b.setArray(self.rhs(op.surface, lp, op) if displacement is None else self.correction_rhs(lp, op, displacement))
         if (displacement is None and self.last is not None
                 and self.last.u.shape == (surface.n_vesicles, 3, sph.n_coeffs(self.p))):
-            x.setArray(op.join(self.last.u, self.last.sigma))
+            x.setArray(op.join(_mine(self.last.u, lp), _mine(self.last.sigma, lp)))
         else:
             x.set(0.0)
-        ksp = PETSc.KSP().create(comm=PETSc.COMM_SELF)
+        ksp = PETSc.KSP().create(comm=comm)
         configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context)
         ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (below)
         with self.timers.stage("setup"):
@@ -169,6 +177,8 @@ class Stepper:
         t_solve = time.perf_counter() - t_solve
         self.timers.count("solve")
         reason, its = ksp.getConvergedReason(), ksp.getIterationNumber()
+        self.ksp_seconds += t_solve
+        self.ksp_its += its
         pc = ksp.getPC()
         observe = getattr(pc.getPythonContext() if pc.getType() == "python" else None, "observe", None)
         self.cond_estimate = _condition_estimate(ksp)
@@ -198,6 +208,10 @@ class Stepper:
                                    reason=reason, iterations=its)
         u, s = op.split(x.getArray().copy())
         self.lp_last = lp
+        if self.part is not None:            # every rank keeps the velocity of every vesicle
+            with self.timers.stage("gather"):
+                both = self.part.gather(np.concatenate([u.reshape(op.N, -1), s], axis=1))
+            u, s = both[:, :3 * op.C].reshape(-1, 3, op.C), both[:, 3 * op.C:]
         return Solution(u.copy(), s.copy(), its, reason)
 
     def default_pc_context(self):
@@ -219,6 +233,11 @@ class Stepper:
         self.time += dt
         self.last = sol
         return sol
+
+
+def _mine(a, lp):
+    """The rows of per-vesicle array a (all vesicles) that belong to lp's vesicles."""
+    return a if lp.part is None else a[lp.idx]
 
 
 SPHERE_TOL = 1e-6     # reduced volume above 1 - SPHERE_TOL: a sphere (as correction.py)
@@ -294,8 +313,11 @@ def residual_modes(op, r, bnorm, x=None):
     vesicle 1 velocity rows degree 0 (6.4e-01); solution: largest vesicle 0 tension degree 0
     (100% of its norm: the constant-tension mode)"."""
     b = max(bnorm, 1e-300)
+    ids = getattr(op.lp, "idx", None)        # with a partition: this rank's vesicles (their scene numbers)
+    name = (lambda v: v) if ids is None else (lambda v: int(ids[v]))
     parts, nv, nt = _split_by_degree(op, r)
     (v, rows, n), worst = max(parts.items(), key=lambda kv: kv[1])
+    v = name(v)
     rows = "divergence" if rows == "tension" else rows
     out = (f"residual: velocity rows {nv / b:.1e}, divergence rows {nt / b:.1e}, largest vesicle {v} {rows} "
            f"rows degree {n} ({worst / b:.1e})")
@@ -303,6 +325,7 @@ def residual_modes(op, r, bnorm, x=None):
         parts, _, _ = _split_by_degree(op, x)
         total = np.sqrt(sum(w ** 2 for w in parts.values()))
         (v, kind, n), big = max(parts.items(), key=lambda kv: kv[1])
+        v = name(v)
         what = ": the constant-tension mode" if (kind, n) == ("tension", 0) else ""
         out += (f"; solution: largest vesicle {v} {kind} degree {n} "
                 f"({100 * big ** 2 / max(total ** 2, 1e-300):.0f}% of its norm{what})")

@@ -5,10 +5,12 @@ One file per run, in the layout of ``docs/output.md`` (the contract of
 timing update and checkpoint, so a run killed at any moment (even by SIGKILL)
 keeps everything written up to its last flush.
 
-Not rank-aware: call it on rank 0 only, after gathering.
+Not rank-aware: rank 0 writes (every rank holds the whole state, vesflow.parallel); the
+other ranks take a PeerWriter, which keeps the checkpoint decisions without a file.
 
 Public names:
     OutputWriter            create (or reopen for restart) and append to a run file
+    PeerWriter              the stand-in of MPI ranks other than 0
     read_output, RunOutput  read frames, steps, attributes, timings
     iter_frames             one frame at a time (for long runs and the renderer)
     read_checkpoint         the latest restartable state as a dict
@@ -18,7 +20,8 @@ Public names:
 from .layout import (FORMAT_VERSION, STEP_COLUMNS, STEP_REASONS, TIMING_KEYS, grid_size,
                      n_coefficients)
 from .reader import RunOutput, frame_fields, iter_frames, read_attributes, read_checkpoint, read_output
+from .peer import PeerWriter
 from .writer import OutputWriter
 
-__all__ = ["OutputWriter", "RunOutput", "read_output", "iter_frames", "read_checkpoint", "read_attributes", "frame_fields",
+__all__ = ["OutputWriter", "PeerWriter", "RunOutput", "read_output", "iter_frames", "read_checkpoint", "read_attributes", "frame_fields",
            "STEP_REASONS", "STEP_COLUMNS", "TIMING_KEYS", "grid_size", "n_coefficients", "FORMAT_VERSION"]

@@ -35,42 +35,81 @@ class Settings:
 class LayerPotentials:
     """Setup once per step for a Surface; apply many times (see module docstring)."""
 
-    def __init__(self, surface, lam=1.0, viscosity=1.0, settings=None, want_double=None, timers=None):
+    def __init__(self, surface, lam=1.0, viscosity=1.0, settings=None, want_double=None, timers=None, part=None):
+        """surface: all vesicles.  part (vesflow.parallel.Partition, None with one process):
+        only this rank's vesicles are targets and have self operators (`local`, `idx`); the
+        sources of all vesicles are gathered (module vesflow.parallel)."""
         s = settings or Settings()
         p = surface.p
-        self.p, self.N = p, surface.n_vesicles
+        self.part = part
+        self.N_total = surface.n_vesicles
+        lam_all = np.broadcast_to(np.asarray(lam, dtype=float), (self.N_total,)).copy()
+        if part is None:
+            self.idx = np.arange(self.N_total)
+            self.local = surface
+        else:
+            from ..surface import Surface
+            self.idx = part.idx
+            self.local = Surface(surface.coeffs[part.idx], p)
+        self.p, self.N = p, self.local.n_vesicles
         self.q_self = s.q_self or 2 * p
         self.q_far = s.q_far or 2 * p
         self.mu = float(viscosity)
-        self.lam = np.broadcast_to(np.asarray(lam, dtype=float), (self.N,)).copy()
-        self.want_double = bool(np.any(self.lam != 1.0)) if want_double is None else bool(want_double)
+        self.lam_all = lam_all
+        self.lam = lam_all[self.idx] if part is not None else lam_all
+        self.want_double = bool(np.any(lam_all != 1.0)) if want_double is None else bool(want_double)
         self.settings = s
         self.surface = surface
         self.timers = timers
         with _timed(timers, "self_setup"):
-            self.self_ops = SelfOperators(surface.coeffs, p, self.q_self, True, self.want_double, self.mu)
-        # far-field sources: the upsampled grid with its quadrature weights
-        gq = surface.geometry(self.q_far)
+            self.self_ops = SelfOperators(self.local.coeffs, p, self.q_self, True, self.want_double, self.mu)
+        # far-field sources: the upsampled grid with its quadrature weights (all vesicles)
+        gq = self.local.geometry(self.q_far)
         self.Tq = sph.transform(p, self.q_far)
-        self.src = np.ascontiguousarray(gq.X.reshape(-1, 3))
-        self.src_w = gq.dA.reshape(-1)
-        self.src_nw = np.ascontiguousarray((gq.normal * gq.dA[..., None]).reshape(-1, 3))
         mq = self.Tq.npts
-        self.src_id = np.repeat(np.arange(self.N, dtype=np.int64), mq)
-        self.src_off = np.arange(self.N + 1, dtype=np.int64) * mq
-        self.h = nearmod.near_distance(surface.area(), self.q_far, s.near_factor)
-        # own targets: the p-grid
         self.Tp = sph.transform(p)
-        self.trg = np.ascontiguousarray(surface.points().reshape(-1, 3))
-        self.trg_id = np.repeat(np.arange(self.N, dtype=np.int64), self.Tp.npts)
+        if part is None:
+            self.src = np.ascontiguousarray(gq.X.reshape(-1, 3))
+            self.src_w = gq.dA.reshape(-1)
+            self.src_nw = np.ascontiguousarray((gq.normal * gq.dA[..., None]).reshape(-1, 3))
+            area = surface.area()
+        else:                                # one Allgatherv of the sources' geometry per set-up
+            with _timed(timers, "gather"):
+                packed = np.concatenate([gq.X.reshape(self.N, -1), (gq.normal * gq.dA[..., None]).reshape(self.N, -1),
+                                         gq.dA, self.local.area()[:, None]], axis=1)
+                allg = part.gather(packed)
+            self.src = np.ascontiguousarray(allg[:, :3 * mq].reshape(-1, 3))
+            self.src_nw = np.ascontiguousarray(allg[:, 3 * mq:6 * mq].reshape(-1, 3))
+            self.src_w = np.ascontiguousarray(allg[:, 6 * mq:7 * mq].reshape(-1))
+            area = allg[:, -1]
+            self.src_w_local = gq.dA.reshape(-1)
+        self.src_id = np.repeat(np.arange(self.N_total, dtype=np.int64), mq)
+        self.src_off = np.arange(self.N_total + 1, dtype=np.int64) * mq
+        self.h = nearmod.near_distance(area, self.q_far, s.near_factor)
+        # own targets: the p-grid
+        self.trg = np.ascontiguousarray(self.local.points().reshape(-1, 3))
+        self.trg_id = np.repeat(np.asarray(self.idx, dtype=np.int64), self.Tp.npts)
         self.far = None
         self.near = None
-        if self.N > 1 or s.period:          # periodic: a single vesicle sees its images
+        if self.N_total > 1 or s.period:    # periodic: a single vesicle sees its images
             with _timed(timers, "near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
             with _timed(timers, "far_setup"):
                 self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps,
-                                    period=s.period)
+                                    period=s.period, **self._far_whole_problem())
+        self.n_near_pairs_total = (self.n_near_pairs if part is None else int(part.sum(self.n_near_pairs)))
+
+    def _far_whole_problem(self):
+        """With a partition: the far-field backend and Ewald parameters are chosen for the
+        whole problem (all ranks' targets), so that every rank (and a run on one process)
+        takes the same; the Ewald sum spreads this rank's sources only (grid Allreduced)."""
+        if self.part is None:
+            return {}
+        trg_all = self.part.gather(self.trg.reshape(self.N, -1)).reshape(-1, 3)
+        mq = self.Tq.npts
+        local_src = (self.idx[:, None] * mq + np.arange(mq)[None]).reshape(-1)
+        return {"whole_targets": trg_all, "whole_own_pairs": self.N_total * mq * self.Tp.npts,
+                "spread": (self.part, local_src)}
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
@@ -86,7 +125,7 @@ class LayerPotentials:
             for k0 in range(0, len(pairs), 2048):
                 sl = slice(k0, k0 + 2048)
                 t, v = pairs[sl, 0], pairs[sl, 1]
-                pts = self.src.reshape(self.N, -1, 3)[v]                         # (B, Mq, 3)
+                pts = self.src.reshape(self.N_total, -1, 3)[v]                         # (B, Mq, 3)
                 d2 = np.einsum("bmk,bmk->bm", pts - tpos[sl][:, None], pts - tpos[sl][:, None])
                 j = d2.argmin(axis=1)
                 nearest[sl] = j
@@ -126,7 +165,8 @@ class LayerPotentials:
     # ------------------------------------------------------------------ apply
     def _densities(self, f, g):
         """Sources of the smooth rule on the q_far grid: f w / mu and (1 - lambda) g."""
-        fw = np.moveaxis(self.Tq.synth(f), -2, -1).reshape(-1, 3) * (self.src_w / self.mu)[:, None]
+        w = self.src_w if self.part is None else self.src_w_local
+        fw = np.moveaxis(self.Tq.synth(f), -2, -1).reshape(-1, 3) * (w / self.mu)[:, None]
         gq = None
         if g is not None and self.want_double:
             gq = np.moveaxis(self.Tq.synth(g * (1.0 - self.lam)[:, None, None]), -2, -1).reshape(-1, 3)
@@ -147,12 +187,34 @@ class LayerPotentials:
         if self.far is None:
             return u_self
         fw, gq = self._densities(f, g)
+        u_near, g_near = u_self, g
+        if self.part is not None:
+            fw, gq, u_near, g_near = self._gathered(fw, gq, u_self, g)
         with _timed(self.timers, "far"):
             vals = self.far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
         with _timed(self.timers, "near"):
-            vals = self._near_correct(vals, self.near, self.trg, fw, gq, u_self, g)
+            vals = self._near_correct(vals, self.near, self.trg, fw, gq, u_near, g_near)
         vals = vals.reshape(self.N, -1, 3)
         return u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
+
+    def _gathered(self, fw, gq, u_self, g):
+        """One Allgatherv per GMRES iteration: the far-field densities of every vesicle (targets
+        are local, sources all) and the self potentials and double-layer densities the near
+        corrections start from (their source vesicle may live on another rank)."""
+        N, mq, C3 = self.N, self.Tq.npts, 3 * sph.n_coeffs(self.p)
+        pieces = [fw.reshape(N, -1), u_self.reshape(N, -1)]
+        if gq is not None:
+            pieces += [gq.reshape(N, -1), g.reshape(N, -1)]
+        with _timed(self.timers, "gather"):
+            allg = self.part.gather(np.concatenate(pieces, axis=1))
+        fw_all = np.ascontiguousarray(allg[:, :3 * mq].reshape(-1, 3))
+        u_all = allg[:, 3 * mq:3 * mq + C3].reshape(self.N_total, 3, -1)
+        if gq is None:
+            return fw_all, None, u_all, None
+        o = 3 * mq + C3
+        gq_all = np.ascontiguousarray(allg[:, o:o + 3 * mq].reshape(-1, 3))
+        g_all = allg[:, o + 3 * mq:].reshape(self.N_total, 3, -1)
+        return fw_all, gq_all, u_all, g_all
 
     def _near_correct(self, vals, info, trg, fw, gq, u_self, g):
         """Replace the smooth rule of near pairs by the near-singular value."""
@@ -171,7 +233,7 @@ class LayerPotentials:
         # on-surface value at the projection: the self potential of vesicle v, one-sided for D
         u0 = np.einsum("pc,pkc->pk", info["basis"], u_self[v])
         if gq is not None:
-            g0 = np.einsum("pc,pkc->pk", info["basis"], g[v]) * (1.0 - self.lam[v])[:, None]
+            g0 = np.einsum("pc,pkc->pk", info["basis"], g[v]) * (1.0 - self.lam_all[v])[:, None]
             u0 -= 0.5 * info["side"][:, None] * g0
         line = line.reshape(len(pairs), nearmod.L_POINTS, 3)
         w = info["weights"]
@@ -181,6 +243,9 @@ class LayerPotentials:
 
     def evaluate_at(self, targets, f, g=None):
         """Values at free targets (T, 3) of sum_j S_j[f_j] + D_j[g_j], any distance (off-surface)."""
+        if self.part is not None:
+            raise ValueError("evaluate_at: free targets need the layer potentials of all vesicles "
+                             "on this process (part=None); this one holds a partition")
         targets = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
         tid = np.full(len(targets), -1, dtype=np.int64)
         fw, gq = self._densities(f, g)
@@ -195,15 +260,15 @@ class LayerPotentials:
         """Errors of D[1] (lambda = 0 kernel) per regime: self vs 1/2, near and far vs 0."""
         C = sph.n_coeffs(self.p)
         if self.self_ops.double is None:
-            dl = SelfOperators(self.surface.coeffs, self.p, self.q_self, False, True).double
+            dl = SelfOperators(self.local.coeffs, self.p, self.q_self, False, True).double
         else:
             dl = self.self_ops.double
         one = np.zeros((self.N, 3, C))
         one[:, :, 0] = np.sqrt(4.0 * np.pi)
         self_vals = self.Tp.synth(SelfOperators.apply(dl, one))
         out = {"self": float(np.abs(self_vals - 0.5).max()), "near": 0.0, "far": 0.0}
-        if self.N == 1:
-            return out
+        if self.N_total == 1:
+            return self._max_over_ranks(out)
         gq = np.ones((len(self.src), 3))
         vals = np.zeros((len(self.trg), 3))
         stokes.stresslet_sum_excl(self.src, self.src_nw, gq, self.src_id, self.trg, self.trg_id, vals)
@@ -227,7 +292,13 @@ class LayerPotentials:
         err = np.abs(vals).max(axis=1)
         out["near"] = float(err[near_t].max()) if near_t.any() else 0.0
         out["far"] = float(err[~near_t].max()) if (~near_t).any() else 0.0
-        return out
+        return self._max_over_ranks(out)
+
+    def _max_over_ranks(self, errors):
+        """The largest of each error over the ranks (every rank takes the same decision)."""
+        if self.part is None:
+            return errors
+        return {k: self.part.max(v) for k, v in errors.items()}
 
     @property
     def n_near_pairs(self):

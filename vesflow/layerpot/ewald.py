@@ -341,7 +341,7 @@ class EwaldSum:
     ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`)."""
 
     def __init__(self, src, src_id, trg, trg_id, tol=1e-8, period=None, params=None, nufft=None,
-                 threads=None, double_layer=False):
+                 threads=None, double_layer=False, spread=None):
         self.src = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
         self.trg = np.ascontiguousarray(trg, dtype=np.float64).reshape(-1, 3)
         self.src_id = np.ascontiguousarray(src_id, dtype=np.int64).reshape(-1)
@@ -387,6 +387,15 @@ class EwaldSum:
         s01[s01 >= 2 * math.pi] = 0.0
         t01[t01 >= 2 * math.pi] = 0.0
         self._nufft = _Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
+        # spread = (partition, this rank's source indices): the type-1 transform of this rank's
+        # sources only, the mode grid summed over the ranks (Allreduce), the rest replicated
+        # (docs/parallel.md: one node, the grid is small next to the far-field work)
+        self._spread = None
+        if spread is not None:
+            part, mine = spread
+            mine = np.asarray(mine, dtype=np.int64)
+            self._spread = (part, mine, _Nufft(nufft, p.modes, np.ascontiguousarray(s01[mine]), t01,
+                                                p.nufft_eps, self.threads))
         self._psi = kernel_psi(p, self.threads)
         self._k = _kvectors(p)
 
@@ -415,7 +424,11 @@ class EwaldSum:
         if g is not None:
             comps.append(_sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
         c = np.ascontiguousarray(np.concatenate(comps, axis=0), dtype=np.complex128)
-        F = self._nufft.type1(c)
+        if self._spread is None:
+            F = self._nufft.type1(c)
+        else:
+            part, mine, nufft = self._spread
+            F = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
         del c
         # in place: each mode's components are read before its three outputs are written
         _kernels.kspace_apply(F, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,

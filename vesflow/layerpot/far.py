@@ -174,7 +174,12 @@ class FarField:
     ``n_snapped`` (targets moved onto a coincident own source, FMM only).
     """
 
-    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None):
+    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None,
+                 whole_targets=None, whole_own_pairs=None, spread=None):
+        """whole_targets, whole_own_pairs: the targets of every MPI rank and their own-vesicle
+        pairs, for choosing the backend and Ewald parameters as one process would (the
+        vesicle partition, vesflow.parallel; trg are this rank's).  spread = (partition,
+        indices of this rank's sources): the Ewald sum spreads only those (EwaldSum)."""
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
@@ -183,23 +188,28 @@ class FarField:
             raise SceneError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
         self.eps = float(eps)
         self.period = period
-        ns, nt = self.src.shape[0], self.trg.shape[0]
+        ns = self.src.shape[0]
+        whole = self.trg if whole_targets is None else _points("whole_targets", whole_targets)
+        nt_whole = whole.shape[0]
         t_ewald, params = None, None
-        if backend == "auto" and period is None and ns and nt and _have_ewald():
+        if backend == "auto" and period is None and ns and nt_whole and _have_ewald():
+            own = _own_pairs(self.src_id, self.trg_id) if whole_own_pairs is None else int(whole_own_pairs)
             try:
-                t_ewald, params = predicted_ewald(np.concatenate([self.src, self.trg]), ns, nt,
-                                                  _own_pairs(self.src_id, self.trg_id), self.eps)
+                t_ewald, params = predicted_ewald(np.concatenate([self.src, whole]), ns, nt_whole, own, self.eps)
             except SceneError:               # no grid fits the memory: not a candidate
                 t_ewald, params = None, None
-        self.backend = choose_backend(ns, nt, backend, self.eps, t_ewald, periodic=period is not None)
+        self.backend = choose_backend(ns, nt_whole, backend, self.eps, t_ewald, periodic=period is not None)
         self.n_snapped = 0
         self.ewald = None
         if self.backend == "fmm":
             self._setup_fmm()
         elif self.backend == "ewald":
-            from .ewald import EwaldSum
+            from .ewald import EwaldSum, choose_params
+            if params is None and whole_targets is not None:
+                params = choose_params(self.eps, np.concatenate([self.src, whole]), period, ns, nt_whole,
+                                       _stokes.max_threads(), 3)
             self.ewald = EwaldSum(self.src, self.src_id, self.trg, self.trg_id, tol=self.eps, period=period,
-                                  params=params)
+                                  params=params, spread=spread)
 
     # ------------------------------------------------------------------ set-up (FMM)
     def _setup_fmm(self):
