@@ -70,7 +70,7 @@ class LayerPotentials:
                 self.near = self._near_setup(self.trg, self.trg_id)
             with _timed(timers, "far_setup"):
                 self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps,
-                                    period=s.period)
+                                    period=s.period, double_layer=self.want_double)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
@@ -185,7 +185,7 @@ class LayerPotentials:
         tid = np.full(len(targets), -1, dtype=np.int64)
         fw, gq = self._densities(f, g)
         far = FarField(self.src, self.src_id, targets, tid, backend=self.settings.backend, eps=self.settings.fmm_eps,
-                       period=self.settings.period)
+                       period=self.settings.period, double_layer=gq is not None)
         vals = far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
         info = self._near_setup(targets, tid)
         return self._near_correct(vals, info, targets, fw, gq, self.self_part(f, g), g)

@@ -97,14 +97,16 @@ def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
     return t_direct, (float(nsrc) + float(ntrg)) * per_point
 
 
-def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None):
+def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None,
+                    double_layer=False):
     """``(seconds, params)`` of the Ewald sum (single layer) over ``points`` (sources and
     targets, or any points spanning their box), ``own_pairs`` target-source pairs of the
     same vesicle (the O(N M Q) subtraction); the parameters from
-    :func:`vesflow.layerpot.ewald.choose_params`."""
+    :func:`vesflow.layerpot.ewald.choose_params`; ``double_layer``: parameters accurate for
+    the stresslet too (the time is still that of the single layer)."""
     from . import ewald
     threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
-    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads)
+    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads, 9 if double_layer else 3)
     return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs), p
 
 
@@ -165,14 +167,16 @@ def _ids(name, a, n):
 class FarField:
     """Far field of a fixed geometry: sources ``src`` (S, 3) grouped by ``src_id`` (S,),
     targets ``trg`` (T, 3) with ``trg_id`` (T,).  Densities are given per call, so one
-    object serves every GMRES iteration of a time step.
+    object serves every GMRES iteration of a time step.  ``double_layer``: the double layer
+    will be evaluated too (the Ewald parameters then meet ``eps`` for the stresslet; False
+    allows a cheaper choice for the single layer alone).
 
     Attributes: ``backend`` (resolved), ``eps``, ``ids`` (the distinct source vesicle ids,
     sorted), ``src_off`` (offsets of each vesicle's sources in the id-sorted order),
     ``n_snapped`` (targets moved onto a coincident own source, FMM only).
     """
 
-    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None):
+    def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None, double_layer=True):
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
@@ -186,7 +190,8 @@ class FarField:
         if backend == "auto" and period is None and ns and nt and _have_ewald():
             try:
                 t_ewald, params = predicted_ewald(np.concatenate([self.src, self.trg]), ns, nt,
-                                                  _own_pairs(self.src_id, self.trg_id), self.eps)
+                                                  _own_pairs(self.src_id, self.trg_id), self.eps,
+                                                  double_layer=double_layer)
             except SceneError:               # no grid fits the memory: not a candidate
                 t_ewald, params = None, None
         self.backend = choose_backend(ns, nt, backend, self.eps, t_ewald, periodic=period is not None)
@@ -197,7 +202,7 @@ class FarField:
         elif self.backend == "ewald":
             from .ewald import EwaldSum
             self.ewald = EwaldSum(self.src, self.src_id, self.trg, self.trg_id, tol=self.eps, period=period,
-                                  params=params)
+                                  params=params, double_layer=double_layer)
 
     # ------------------------------------------------------------------ set-up (FMM)
     def _setup_fmm(self):
@@ -309,7 +314,7 @@ def far_single_layer(src, f_w, src_id, trg, trg_id, backend="auto", eps=DEFAULT_
     ``u_t = sum_{src_id[s] != trg_id[t]} (1/(8 pi)) (f_s/r + r (r.f_s)/r^3)``, r = x_t - y_s,
     ``f_w`` = traction times quadrature weight.  See :class:`FarField` for the backends.
     """
-    return FarField(src, src_id, trg, trg_id, backend, eps).evaluate(f_w=f_w)
+    return FarField(src, src_id, trg, trg_id, backend, eps, double_layer=False).evaluate(f_w=f_w)
 
 
 def far_double_layer(src, nw, g, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS):
