@@ -77,7 +77,11 @@ NUFFT_EPS_FACTOR = 0.5
 # own-vesicle pair; NUFFT spreading per point per transform per kernel width cubed; FFT per
 # fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
 # mode per component
-COST = {"pair": 2.2e-8, "own_pair": 5.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 1.0e-8}
+# Re-measured after the cell-ordered real space (periodic N = 512, p = 16, tol 1e-6, one thread,
+# CPU, load ~10: real 4.21 s for 1.52e8 model pairs (2.13e8 counted: the points lie on surfaces),
+# own 1.8 s for 5.9e8 pairs, k-space 0.12 s for 7.5e6 modes x 6; the NUFFT terms kept: type 1 +
+# type 2 measured 5.9 s against 6.7 s modelled; docs/far_field.md)
+COST = {"pair": 2.8e-8, "own_pair": 3.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 3.0e-9}
 # memory of the Fourier grids of one pass (complex, one array per source component): a
 # parameter choice keeps the double layer's pass (6 components) within it; single and double
 # layer share one pass (9 components) when that fits too
