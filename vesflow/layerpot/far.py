@@ -68,7 +68,9 @@ DEFAULT_EPS = 1e-8
 # per point (fmm eps 1e-8, N = 64; was 200); measured crossover N ~ 150 vesicles (power laws of
 # the wall and CPU times), the model below switches at N = 139 (it said 129 before).
 DIRECT_SECONDS_PER_PAIR = 3.9e-9
-FMM_SECONDS_PER_POINT = {1e-6: 1.0e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
+# 1e-6 re-measured: 119 us per point at N = 64, 165 us at N = 128 (the per-point cost grows like N^0.26;
+# benchmarks/far_field.py --eps 1e-6, load ~9, docs/far_field.md): the larger kept
+FMM_SECONDS_PER_POINT = {1e-6: 1.65e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
 # targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
 # moved onto it (FMM backend only)
 SNAP_TOL = 1e-10
