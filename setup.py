@@ -10,7 +10,9 @@ KERNELS = [
     "ewald",       # real-space part of the spectral Ewald sums (cell lists)
 ]
 
-compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2"]  # no -ffast-math: singular quadrature needs exact cancellation
+# no -ffast-math: singular quadrature needs exact cancellation; -fno-math-errno only drops errno
+# for sqrt of negatives (never taken) so that square roots vectorize (stokes.pyx *_block)
+compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2", "-fno-math-errno"]
 extensions = [
     Extension(
         f"vesflow._kernels.{name}",

@@ -341,3 +341,157 @@ def self_kernel_tables(const double[:, ::1] target, const double[:, :, ::1] x,
                     double_[j, 3, m] = d5 * r1 * r1
                     double_[j, 4, m] = d5 * r1 * r2
                     double_[j, 5, m] = d5 * r2 * r2
+
+
+# ---------------------------------------------------------------------------------------
+# Blocks of K targets against the sources of one vesicle (the near correction: a near pair's
+# target and its 8 line points): the loop over the K targets is innermost and branch-free, so
+# the compiler vectorizes it ACROSS targets; each target still sums its sources in order with
+# the operations of _stokeslet_range / _stresslet_range (the same values; a coincident point
+# contributes exactly 0 instead of being skipped).
+# ---------------------------------------------------------------------------------------
+DEF KMAX = 16
+
+
+cdef void _stokeslet_block(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
+                           const double* x, int K, double* o) noexcept nogil:
+    cdef double x0[KMAX]
+    cdef double x1[KMAX]
+    cdef double x2[KMAX]
+    cdef double a0[KMAX]
+    cdef double a1[KMAX]
+    cdef double a2[KMAX]
+    cdef int k
+    cdef Py_ssize_t s
+    cdef double y0, y1, y2, f0, f1, f2, r0, r1, r2, rr, ri, rf, m
+    for k in range(K):
+        x0[k] = x[3 * k]
+        x1[k] = x[3 * k + 1]
+        x2[k] = x[3 * k + 2]
+        a0[k] = 0.0
+        a1[k] = 0.0
+        a2[k] = 0.0
+    for s in range(s0, s1):
+        y0 = src[3 * s]
+        y1 = src[3 * s + 1]
+        y2 = src[3 * s + 2]
+        f0 = f[3 * s]
+        f1 = f[3 * s + 1]
+        f2 = f[3 * s + 2]
+        for k in range(K):
+            r0 = x0[k] - y0
+            r1 = x1[k] - y1
+            r2 = x2[k] - y2
+            rr = r0 * r0 + r1 * r1 + r2 * r2
+            m = <double> (rr == 0.0)              # coincident: ri = 0, branch-free
+            ri = (1.0 - m) / sqrt(rr + m)
+            rf = (r0 * f0 + r1 * f1 + r2 * f2) * (ri * ri * ri)
+            a0[k] = a0[k] + f0 * ri + r0 * rf
+            a1[k] = a1[k] + f1 * ri + r1 * rf
+            a2[k] = a2[k] + f2 * ri + r2 * rf
+    for k in range(K):
+        o[3 * k] += a0[k] * INV8PI
+        o[3 * k + 1] += a1[k] * INV8PI
+        o[3 * k + 2] += a2[k] * INV8PI
+
+
+cdef void _stresslet_block(const double* src, const double* nw, const double* g, Py_ssize_t s0, Py_ssize_t s1,
+                           const double* x, int K, double* o) noexcept nogil:
+    cdef double x0[KMAX]
+    cdef double x1[KMAX]
+    cdef double x2[KMAX]
+    cdef double a0[KMAX]
+    cdef double a1[KMAX]
+    cdef double a2[KMAX]
+    cdef int k
+    cdef Py_ssize_t s
+    cdef double y0, y1, y2, n0, n1, n2, g0, g1, g2, r0, r1, r2, rr, ri, ri2, c, m
+    for k in range(K):
+        x0[k] = x[3 * k]
+        x1[k] = x[3 * k + 1]
+        x2[k] = x[3 * k + 2]
+        a0[k] = 0.0
+        a1[k] = 0.0
+        a2[k] = 0.0
+    for s in range(s0, s1):
+        y0 = src[3 * s]
+        y1 = src[3 * s + 1]
+        y2 = src[3 * s + 2]
+        n0 = nw[3 * s]
+        n1 = nw[3 * s + 1]
+        n2 = nw[3 * s + 2]
+        g0 = g[3 * s]
+        g1 = g[3 * s + 1]
+        g2 = g[3 * s + 2]
+        for k in range(K):
+            r0 = x0[k] - y0
+            r1 = x1[k] - y1
+            r2 = x2[k] - y2
+            rr = r0 * r0 + r1 * r1 + r2 * r2
+            m = <double> (rr == 0.0)              # coincident: ri = 0, branch-free
+            ri = (1.0 - m) / sqrt(rr + m)
+            ri2 = ri * ri
+            c = ((r0 * n0 + r1 * n1 + r2 * n2) * (r0 * g0 + r1 * g1 + r2 * g2)) * (ri2 * ri2 * ri)
+            a0[k] = a0[k] + c * r0
+            a1[k] = a1[k] + c * r1
+            a2[k] = a2[k] + c * r2
+    for k in range(K):
+        o[3 * k] += a0[k] * M3_4PI
+        o[3 * k + 1] += a1[k] * M3_4PI
+        o[3 * k + 2] += a2[k] * M3_4PI
+
+
+cdef _check_blocks(const double[:, :, ::1] trg, const long[::1] ves, const long[::1] src_off, Py_ssize_t ns,
+                   const double[:, :, ::1] out):
+    cdef Py_ssize_t p, nv = src_off.shape[0] - 1
+    if trg.shape[2] != 3 or out.shape[2] != 3:
+        raise ValueError("trg and out must have shape (P, K, 3)")
+    if trg.shape[1] > KMAX:
+        raise ValueError(f"at most {KMAX} targets per block, got {trg.shape[1]}")
+    if out.shape[0] != trg.shape[0] or out.shape[1] != trg.shape[1] or ves.shape[0] != trg.shape[0]:
+        raise ValueError("trg (P, K, 3), ves (P,) and out (P, K, 3) must agree")
+    if nv < 0 or src_off[0] < 0 or src_off[nv] > ns:
+        raise ValueError(f"src_off must lie in [0, {ns}] (number of sources)")
+    for p in range(ves.shape[0]):
+        if not (0 <= ves[p] < nv):
+            raise ValueError(f"ves[{p}] = {ves[p]} is not a vesicle index in [0, {nv})")
+
+
+def stokeslet_sum_blocks(const double[:, ::1] src, const double[:, ::1] f, const long[::1] src_off,
+                         const double[:, :, ::1] trg, const long[::1] ves, double[:, :, ::1] out):
+    """out[p, k] += sum_{s in src_off[v]:src_off[v+1]} S(trg[p, k], src_s) f_s, v = ves[p]:
+    as :func:`stokeslet_sum_pairs` for the K (<= 16) targets of block p at once (vectorized
+    across them; the same values).  trg, out: (P, K, 3)."""
+    _check3("src", src); _check3("f", f)
+    _check_same("src", src.shape[0], "f", f.shape[0])
+    _check_blocks(trg, ves, src_off, src.shape[0], out)
+    cdef Py_ssize_t p, n = trg.shape[0]
+    cdef int K = trg.shape[1]
+    if n == 0 or K == 0:
+        return
+    cdef const double* ps = _p2(src)
+    cdef const double* pf = _p2(f)
+    with nogil:
+        for p in prange(n, schedule="dynamic", chunksize=16):
+            _stokeslet_block(ps, pf, src_off[ves[p]], src_off[ves[p] + 1], &trg[p, 0, 0], K, &out[p, 0, 0])
+
+
+def stresslet_sum_blocks(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
+                         const long[::1] src_off, const double[:, :, ::1] trg, const long[::1] ves,
+                         double[:, :, ::1] out):
+    """out[p, k] += sum_{s in src_off[v]:src_off[v+1]} D(trg[p, k], src_s) g_s, v = ves[p]
+    (as :func:`stresslet_sum_pairs`, K targets per block at once).  trg, out: (P, K, 3)."""
+    _check3("src", src); _check3("nw", nw); _check3("g", g)
+    _check_same("src", src.shape[0], "nw", nw.shape[0])
+    _check_same("src", src.shape[0], "g", g.shape[0])
+    _check_blocks(trg, ves, src_off, src.shape[0], out)
+    cdef Py_ssize_t p, n = trg.shape[0]
+    cdef int K = trg.shape[1]
+    if n == 0 or K == 0:
+        return
+    cdef const double* ps = _p2(src)
+    cdef const double* pn = _p2(nw)
+    cdef const double* pg = _p2(g)
+    with nogil:
+        for p in prange(n, schedule="dynamic", chunksize=16):
+            _stresslet_block(ps, pn, pg, src_off[ves[p]], src_off[ves[p] + 1], &trg[p, 0, 0], K, &out[p, 0, 0])
