@@ -11,8 +11,10 @@ upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) 
 
 Time per GMRES iteration: the membrane forces and transforms (per vesicle), the self
 operators (one GEMV each: they are streamed from memory), the far field (direct sum over the
-(N M) x ((N-1) Mq) pairs, or the FMM, as `-ves_far auto` would choose: vesflow.layerpot.far's
-own model), and the near correction (9 Mq kernel evaluations per near pair).  The constants
+(N M) x ((N-1) Mq) pairs, the FMM or the Ewald sum, as `-ves_far auto` would choose:
+vesflow.layerpot.far's own model), and the near correction (9 Mq kernel evaluations per near
+pair).  Time per step: the solves of one step (3 with -ves_adapt doubling), each its set-up and
+ITERATIONS_PER_SOLVE GMRES iterations.  The constants
 below were measured on the development machine (2 cores; docs/results.md); expect the
 right order of magnitude, not the digits.
 """
@@ -28,6 +30,10 @@ SELF_SETUP_S = (0.134, 3.8)      # seconds per vesicle to assemble S at p = 16, 
 PC_SETUP_S = (0.29, 4.1)         # seconds per vesicle to build and factor its 4C block at p = 16
 # (issue 16, CPU seconds: S 0.0035 / 0.034 / 0.134 and block + LU 0.011 / 0.086 / 0.29 at p = 6 / 12 / 16)
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
+# seconds per (near target or line point, source) kernel evaluation of one thread, the near
+# correction in blocks (stokes.*_sum_blocks): 4.24 s for 88189 pairs at p = 16, q = 32
+# (benchmarks/iteration.py --n 512, docs/far_field.md)
+NEAR_SECONDS_PER_EVAL = 2.5e-9
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
 # doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
@@ -163,8 +169,7 @@ def estimate(scene, opts=None, near=True):
         else:
             backend = want
         t_far = {"fmm": t_fmm, "ewald": t_ewald}.get(backend, t_direct) or 0.0
-    per_pair = farmod.DIRECT_SECONDS_PER_PAIR / max(1, _threads())
-    t_near = max(pairs, 0) * NEAR_EVALS * Mq * per_pair * (2 if dl else 1)
+    t_near = max(pairs, 0) * NEAR_EVALS * Mq * NEAR_SECONDS_PER_EVAL / max(1, _threads()) * (2 if dl else 1)
     t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
     return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
