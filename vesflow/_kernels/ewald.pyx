@@ -32,9 +32,11 @@ vesicle at their given (unwrapped) position::
 with ``G^F_rc = G^F`` for ``|r| < rc`` and ``G`` beyond (and the same for ``T``), so that the
 Fourier part over ALL sources plus this gives the Ewald sum without the own vesicle.  A
 coincident pair (``r = 0``) of different vesicles is skipped like the direct sum skips it,
-i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image,
-``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, counting
-sort) and an OpenMP ``prange`` over targets; every output row ACCUMULATES (``out += ...``).
+i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image
+(the image shift of each neighbour cell; per pair only along an axis of fewer than 5 cells),
+``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, sources
+and targets sorted by cell once per geometry) and an OpenMP ``prange`` over the cells holding
+targets; every output row ACCUMULATES (``out += ...``).
 """
 import numpy as np
 
