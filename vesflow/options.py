@@ -100,6 +100,9 @@ REGISTRY: tuple[Option, ...] = (
        ge=2, le=256, default_text="4p"),
     _O("-ves_near_factor", float, 1.0, "near-zone width h_n = factor * sqrt(A_max / q_near)", "quadrature",
        gt=0, le=10),
+    _O("-ves_near_blend", float, 0.0, "blend the near-singular value into the smooth rule over "
+       "h_n .. h_n (1 + blend) (C^2 weight) instead of switching at h_n: a velocity smooth in the positions, "
+       "which high-order time steps need (docs/dynamics.md); 0 = switch", "quadrature", ge=0, le=1),
     _O("-ves_far", str, "auto", "far-field sum: auto = the faster of direct and fmm by the cost model "
        "measured on this machine (docs/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
        choices=("auto", "direct", "fmm", "ewald")),
@@ -119,6 +122,9 @@ REGISTRY: tuple[Option, ...] = (
        "time stepping", choices=("euler", "sdc")),
     _O("-ts_sdc_nodes", int, 3, "Gauss-Lobatto nodes of an sdc step (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
+    _O("-ts_sdc_quadrature", str, "lobatto", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
+       "or radau (the step's start and Radau IIA nodes, order 2 nodes - 3, L-stable: stiff modes damped)",
+       "time stepping", choices=("lobatto", "radau")),
     _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
        ge=1, le=20),
     _O("-ves_adapt", str, None, "adaptive time step: none (fixed dt), doubling (one step vs two "

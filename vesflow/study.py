@@ -113,7 +113,8 @@ def run_case(scene, case, horizon=None, extra_options=None):
     steps = rec.steps
     solves_per_try = 3 if given["-ves_adapt"] == "doubling" else 1
     if case.scheme == "sdc":        # vesflow.sdc: M (2K + 1) + 1 solves per step, M = nodes - 1
-        solves_per_try *= (opts["ts_sdc_nodes"] - 1) * (2 * opts["ts_sdc_sweeps"] + 1) + 1
+        solves_per_try *= ((opts["ts_sdc_nodes"] - 1) * (2 * opts["ts_sdc_sweeps"] + 1)
+                           + (opts["ts_sdc_quadrature"] == "lobatto"))
     n_solves = solves_per_try * len(steps)
     its = sum(int(r[3]) for r in steps)
     reasons = {}
