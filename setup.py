@@ -10,12 +10,14 @@ KERNELS = [
     "ewald",       # real-space part of the spectral Ewald sums (cell lists)
 ]
 
-compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2"]  # no -ffast-math: singular quadrature needs exact cancellation
+compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2", "-fno-math-errno"]
+# no -ffast-math: the singular quadrature needs exact cancellation.  -fno-math-errno changes no
+# result (sqrt of a negative number does not set errno) but lets sqrt vectorize (pairsum.h)
 extensions = [
     Extension(
         f"vesflow._kernels.{name}",
         [f"vesflow/_kernels/{name}.pyx"],
-        include_dirs=[numpy.get_include()],
+        include_dirs=[numpy.get_include(), "vesflow/_kernels"],
         extra_compile_args=compile_args,
         extra_link_args=["-fopenmp"],
         define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION")],

@@ -59,13 +59,13 @@ fi
 if [ -L "$ROOT/.venv" ] || [ ! -e "$ROOT/.venv" ]; then
   ln -sfn "$ENV_DIR" "$ROOT/.venv"
 fi
-src_hash="$(cat "$ROOT"/setup.py "$ROOT"/pyproject.toml "$ROOT"/vesflow/_kernels/*.pyx 2>/dev/null | sha256sum | cut -c1-16)"
+src_hash="$(cat "$ROOT"/setup.py "$ROOT"/pyproject.toml "$ROOT"/vesflow/_kernels/*.pyx "$ROOT"/vesflow/_kernels/*.h 2>/dev/null | sha256sum | cut -c1-16)"
 stamp="$ROOT/build/.kernels-$src_hash"
 where="$(cd / && "$ENV_DIR/bin/python" -c 'import vesflow, os; print(os.path.dirname(os.path.dirname(vesflow.__file__)))' 2>/dev/null || true)"  # from /: not the cwd copy
 if [ "$where" != "$ROOT" ] || [ ! -f "$stamp" ]; then
   say "building the kernels and installing vesflow from $ROOT"
   (cd "$ROOT" && PATH="$ENV_DIR/bin:$PATH" "$ENV_DIR/bin/pip" install -q --no-build-isolation --no-deps -e .)
-  (cd "$ROOT" && PATH="$ENV_DIR/bin:$PATH" "$ENV_DIR/bin/python" setup.py -q build_ext --inplace >/dev/null)
+  (cd "$ROOT" && PATH="$ENV_DIR/bin:$PATH" "$ENV_DIR/bin/python" setup.py -q build_ext --inplace --force >/dev/null)  # --force: a changed flag or header rebuilds
   mkdir -p "$ROOT/build" && rm -f "$ROOT"/build/.kernels-* && touch "$stamp"
 fi
 say "ready: $ROOT/.venv -> $ENV_DIR"

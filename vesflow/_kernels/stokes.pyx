@@ -28,6 +28,13 @@ from cython.parallel cimport prange
 from libc.math cimport sqrt, M_PI
 cimport openmp
 
+cdef extern from "pairsum.h" nogil:
+    # the unexcluded range sums, vectorized (pairsum.h)
+    void vf_stokeslet_range(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
+                            const double* x, double* o)
+    void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
+                            Py_ssize_t s1, const double* x, double* o)
+
 cdef double INV8PI = 1.0 / (8.0 * M_PI)      # Stokeslet prefactor 1 / (8 pi mu), mu = 1
 cdef double M3_4PI = -3.0 / (4.0 * M_PI)     # stresslet prefactor -3 / (4 pi)
 
@@ -39,7 +46,11 @@ cdef inline void _stokeslet_range(const double* src, const double* f,
                                   Py_ssize_t s0, Py_ssize_t s1,
                                   const long* src_id, long excl,
                                   const double* x, double* o) noexcept nogil:
-    """o[0:3] += sum_{s0 <= s < s1, src_id[s] != excl} S(x, src_s) f_s  (src_id NULL: no exclusion)."""
+    """o[0:3] += sum_{s0 <= s < s1, src_id[s] != excl} S(x, src_s) f_s  (src_id NULL: no exclusion,
+    the vectorized loop of pairsum.h)."""
+    if src_id == NULL:
+        vf_stokeslet_range(src, f, s0, s1, x, o)
+        return
     cdef Py_ssize_t s
     cdef double r0, r1, r2, rr, ri, rf
     cdef double a0 = 0.0, a1 = 0.0, a2 = 0.0
@@ -67,7 +78,11 @@ cdef inline void _stresslet_range(const double* src, const double* nw, const dou
                                   Py_ssize_t s0, Py_ssize_t s1,
                                   const long* src_id, long excl,
                                   const double* x, double* o) noexcept nogil:
-    """o[0:3] += sum_{s0 <= s < s1, src_id[s] != excl} D(x, src_s) g_s  (src_id NULL: no exclusion)."""
+    """o[0:3] += sum_{s0 <= s < s1, src_id[s] != excl} D(x, src_s) g_s  (src_id NULL: no exclusion,
+    the vectorized loop of pairsum.h)."""
+    if src_id == NULL:
+        vf_stresslet_range(src, nw, g, s0, s1, x, o)
+        return
     cdef Py_ssize_t s
     cdef double r0, r1, r2, rr, ri, ri2, c
     cdef double a0 = 0.0, a1 = 0.0, a2 = 0.0
@@ -168,6 +183,26 @@ def stresslet_sum(const double[:, ::1] src, const double[:, ::1] nw, const doubl
 # ---------------------------------------------------------------------------------------
 # everything except the target's own group ("far field minus self")
 # ---------------------------------------------------------------------------------------
+cdef bint _sorted(const long* ids, Py_ssize_t n) noexcept nogil:
+    cdef Py_ssize_t i
+    for i in range(1, n):
+        if ids[i] < ids[i - 1]:
+            return False
+    return True
+
+
+cdef inline Py_ssize_t _lower(const long* ids, Py_ssize_t n, long key) noexcept nogil:
+    """First index i with ids[i] >= key (ids sorted)."""
+    cdef Py_ssize_t lo = 0, hi = n, mid
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if ids[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
 def stokeslet_sum_excl(const double[:, ::1] src, const double[:, ::1] f, const long[::1] src_id,
                        const double[:, ::1] trg, const long[::1] trg_id, double[:, ::1] out):
     """As :func:`stokeslet_sum`, skipping the sources with ``src_id[s] == trg_id[t]``.
@@ -186,9 +221,17 @@ def stokeslet_sum_excl(const double[:, ::1] src, const double[:, ::1] f, const l
     cdef const double* pt = _p2(trg)
     cdef double* po = _pw(out)
     cdef const long* pid = _p1(src_id)
+    cdef Py_ssize_t lo, hi
     with nogil:
-        for t in prange(nt, schedule="static"):
-            _stokeslet_range(ps, pf, 0, ns, pid, trg_id[t], pt + 3 * t, po + 3 * t)
+        if _sorted(pid, ns):        # the own group is one range [lo, hi): sum around it, no test per pair
+            for t in prange(nt, schedule="static"):
+                lo = _lower(pid, ns, trg_id[t])
+                hi = _lower(pid, ns, trg_id[t] + 1)
+                vf_stokeslet_range(ps, pf, 0, lo, pt + 3 * t, po + 3 * t)
+                vf_stokeslet_range(ps, pf, hi, ns, pt + 3 * t, po + 3 * t)
+        else:
+            for t in prange(nt, schedule="static"):
+                _stokeslet_range(ps, pf, 0, ns, pid, trg_id[t], pt + 3 * t, po + 3 * t)
 
 
 def stresslet_sum_excl(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
@@ -208,9 +251,17 @@ def stresslet_sum_excl(const double[:, ::1] src, const double[:, ::1] nw, const 
     cdef const double* pt = _p2(trg)
     cdef double* po = _pw(out)
     cdef const long* pid = _p1(src_id)
+    cdef Py_ssize_t lo, hi
     with nogil:
-        for t in prange(nt, schedule="static"):
-            _stresslet_range(ps, pn, pg, 0, ns, pid, trg_id[t], pt + 3 * t, po + 3 * t)
+        if _sorted(pid, ns):
+            for t in prange(nt, schedule="static"):
+                lo = _lower(pid, ns, trg_id[t])
+                hi = _lower(pid, ns, trg_id[t] + 1)
+                vf_stresslet_range(ps, pn, pg, 0, lo, pt + 3 * t, po + 3 * t)
+                vf_stresslet_range(ps, pn, pg, hi, ns, pt + 3 * t, po + 3 * t)
+        else:
+            for t in prange(nt, schedule="static"):
+                _stresslet_range(ps, pn, pg, 0, ns, pid, trg_id[t], pt + 3 * t, po + 3 * t)
 
 
 # ---------------------------------------------------------------------------------------
