@@ -120,7 +120,7 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ts_type", str, "euler", "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
        "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py)",
        "time stepping", choices=("euler", "sdc")),
-    _O("-ts_sdc_nodes", int, 3, "Gauss-Lobatto nodes of an sdc step (nodes - 1 substeps)", "time stepping",
+    _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
     _O("-ts_sdc_quadrature", str, "lobatto", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
        "or radau (the step's start and Radau IIA nodes, order 2 nodes - 3, L-stable: stiff modes damped)",
@@ -128,8 +128,8 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
        ge=1, le=20),
     _O("-ves_adapt", str, None, "adaptive time step: none (fixed dt), doubling (one step vs two "
-       "half steps), invariants (relative change of area and volume), sweeps (difference of the last "
-       "two sdc sweeps, -ts_type sdc)", "time stepping",
+       "half steps), invariants (relative change of area and volume), sweeps (error of the kept sdc "
+       "state from its sweeps' contraction, -ts_type sdc)", "time stepping",
        choices=("none", "doubling", "invariants", "sweeps"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
     _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",

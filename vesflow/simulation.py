@@ -1,7 +1,7 @@
 """A run: scene -> initial state -> time steps (adaptive, with rejection) -> HDF5 frames and checkpoints.
 
 Adaptive stepping (paper 3.7): the error e = max |X(two steps of dt/2) - X(one step of dt)|
-(-ts_type sdc: by default the difference of its last two sweeps, vesflow/sdc.py) is accepted
+(-ts_type sdc: by default the error of the kept state from its sweeps, sdc.error_estimate) is accepted
 when e / dt <= E/T (-ves_adapt_tol); the next step is dt (beta (E/T) dt / e)^(1/k) (k = 1 for
 the first-order step; for sdc the order of e / dt), within [dt_min, dt_max] and at most doubling.  A step is also rejected (dt halved)
 on a GMRES failure, a non-finite result or a collision (paper 3.3).
