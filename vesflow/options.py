@@ -128,9 +128,10 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
        ge=1, le=20),
     _O("-ves_adapt", str, None, "adaptive time step: none (fixed dt), doubling (one step vs two "
-       "half steps), invariants (relative change of area and volume), sweeps (error of the kept sdc "
-       "state from its sweeps' contraction, -ts_type sdc)", "time stepping",
-       choices=("none", "doubling", "invariants", "sweeps"), default_text="doubling (euler), sweeps (sdc)"),
+       "half steps), invariants (relative change of area and volume), sweeps (difference of the last "
+       "two sdc sweeps), contraction (error of the kept sdc state from its sweeps' contraction; "
+       "misses the stiff collocation error, docs/dynamics.md)", "time stepping",
+       choices=("none", "doubling", "invariants", "sweeps", "contraction"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
     _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",
        gt=0, le=1),
@@ -366,8 +367,8 @@ def read_options(getter, scene=None) -> OptionValues:
             vals["checkpoint_every"] = scene.output.every
     if vals["adapt"] is None:
         vals["adapt"] = "sweeps" if vals["ts_type"] == "sdc" else "doubling"
-    elif vals["adapt"] == "sweeps" and vals["ts_type"] != "sdc":
-        _fail(OPTIONS["-ves_adapt"], "sweeps", f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
+    elif vals["adapt"] in ("sweeps", "contraction") and vals["ts_type"] != "sdc":
+        _fail(OPTIONS["-ves_adapt"], vals["adapt"], f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
     if vals["ts_type"] == "sdc" and vals["coupling"] != "implicit":
         _fail(OPTIONS["-ts_type"], "sdc", "needs -ves_coupling implicit (the quadrature integrates the "
               "velocity field; lagged coupling terms are not it)")

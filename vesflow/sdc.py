@@ -17,7 +17,8 @@ with its tension (inextensibility), implicit, on the geometry Y = X^{k+1}_m froz
 the substep; the rest of the linearization is dropped (O(h e), which keeps the gain of one order
 per sweep).  In the linear model F = J X, B = J this is implicit-Euler SDC.  Each sweep gains one
 order up to the quadrature's 2M: K sweeps give order min(K + 1, 2M).  The difference of the
-last two sweeps at t_M is the error estimate of the adaptive step.
+last two sweeps at t_M is the error estimate of the adaptive step (or error_estimate, from the
+sweeps' contraction).
 """
 from __future__ import annotations
 
@@ -106,7 +107,8 @@ class SDC:
         self.sweeps = int(sweeps)
         stepper.lp_cache_size = max(stepper.lp_cache_size, nodes)   # X_0 reused by every sweep
         self.iterations = 0
-        self.error = None                 # estimate of the last step (error_estimate)
+        self.error = None                 # d_K of the last step: the error of K - 1 sweeps (-ves_adapt sweeps)
+        self.contraction_error = None     # error_estimate of the last step (-ves_adapt contraction)
         self.differences = []             # max |X^k_M - X^{k-1}_M| of the last step, k = 1 .. K
 
     def _solve(self, dt, X, displacement=None):
@@ -122,8 +124,8 @@ class SDC:
     def step(self, dt):
         """One step of dt from the stepper's state.  Returns (Solution, error estimate): the
         Solution is the velocity and tension at the end node of the last sweep but one (the
-        final state's to the error estimate); the estimate is error_estimate of the differences
-        of the sweeps at the end node (self.differences)."""
+        final state's to the error estimate); the estimate is d_K = max |X^K_M - X^{K-1}_M| on
+        the grid (self.error; the contraction estimate of the kept state: self.contraction_error)."""
         st = self.stepper
         p, M = st.p, len(self.tau) - 1
         h = dt * np.diff(self.tau)
@@ -154,7 +156,8 @@ class SDC:
             ends.append(X[M])
         T = sph.transform(p)
         self.differences = [float(np.abs(T.synth(b - a)).max()) for a, b in zip(ends[:-1], ends[1:])]
-        err = self.error = error_estimate(self.differences)
+        err = self.error = self.differences[-1]
+        self.contraction_error = error_estimate(self.differences)
         st.coeffs = X[M].copy()
         st.time += dt
         return Solution(F_end.u, F_end.sigma, self.iterations, F_end.reason), err

@@ -1,7 +1,7 @@
 """A run: scene -> initial state -> time steps (adaptive, with rejection) -> HDF5 frames and checkpoints.
 
 Adaptive stepping (paper 3.7): the error e = max |X(two steps of dt/2) - X(one step of dt)|
-(-ts_type sdc: by default the error of the kept state from its sweeps, sdc.error_estimate) is accepted
+(-ts_type sdc: by default the difference of its last two sweeps, vesflow/sdc.py) is accepted
 when e / dt <= E/T (-ves_adapt_tol); the next step is dt (beta (E/T) dt / e)^(1/k) (k = 1 for
 the first-order step; for sdc the order of e / dt), within [dt_min, dt_max] and at most doubling.  A step is also rejected (dt halved)
 on a GMRES failure, a non-finite result or a collision (paper 3.3).
@@ -80,9 +80,10 @@ class Run:
             from .sdc import collocation_order
             self.sdc = SDC(self.stepper, opts["ts_sdc_nodes"], opts["ts_sdc_sweeps"], opts["ts_sdc_quadrature"])
             K, top = opts["ts_sdc_sweeps"], collocation_order(opts["ts_sdc_nodes"], opts["ts_sdc_quadrature"])
-            # sweeps: the estimate of the kept K-sweep state (sdc.error_estimate), local error
-            # dt^(K + 2) for K >= 2; with one sweep that of the provisional state, dt^2
-            self.err_order = {"doubling": min(K + 1, top), "sweeps": min(K + 1, top) if K >= 2 else 1}.get(opts["adapt"], 1)
+            # sweeps: d_K, the local error of K - 1 sweeps, dt^(K + 1); contraction: the estimate of
+            # the kept K-sweep state (sdc.error_estimate), dt^(K + 2) for K >= 2 (one sweep: d_1)
+            self.err_order = {"doubling": min(K + 1, top), "sweeps": min(K, top),
+                              "contraction": min(K + 1, top) if K >= 2 else 1}.get(opts["adapt"], 1)
         if phys.repulsion_radius > 0:
             from .repulsion import repulsion_force
             R = phys.repulsion_radius
@@ -143,6 +144,8 @@ class Run:
                 err = self._doubling_error(one, st.coeffs)
             elif adapt == "sweeps":
                 err = self.sdc.error
+            elif adapt == "contraction":
+                err = self.sdc.contraction_error
             elif adapt == "invariants":
                 S = st.surface
                 err = float(max(np.abs(S.area() / self.area0 - 1).max(), np.abs(S.volume() / self.volume0 - 1).max()))
