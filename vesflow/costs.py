@@ -23,10 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 
 BANDWIDTH = 2e10                 # bytes/s streamed by the batched self GEMV (measured 2-5e10)
-FORCE_S = (1.0e-3, 3.0e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
-SELF_SETUP_S = (0.134, 3.8)      # seconds per vesicle to assemble S at p = 16, exponent in p
-PC_SETUP_S = (0.29, 4.1)         # seconds per vesicle to build and factor its 4C block at p = 16
-# (issue 16, CPU seconds: S 0.0035 / 0.034 / 0.134 and block + LU 0.011 / 0.086 / 0.29 at p = 6 / 12 / 16)
+FORCE_S = (1.5e-4, 1.5e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
+SELF_SETUP_S = (0.088, 4.0)      # seconds per vesicle to assemble S at p = 16, exponent in p
+PC_SETUP_S = (0.26, 4.0)         # seconds per vesicle to build and factor its 4C block at p = 16
+# (benchmarks/cost_model.py, CPU seconds, p = 6 / 8 / 12 / 16: S 0.0019 / 0.0050 / 0.026 / 0.097,
+# block + LU 0.007 / 0.012 / 0.057 / 0.26-0.36, forces 1.6 / 2.2 / 4.3 / 7.4e-4 per iteration;
+# before the second wave's transforms: S 0.0035 / - / 0.034 / 0.134, block + LU 0.011 / - / 0.086 / 0.29)
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 
 

@@ -153,9 +153,16 @@ class Transform:
         if p == q:
             nm[q] = 2.0 * q
         aw = 2.0 * np.pi / (c[:, 0] ** 2 * nm)
-        self._fourier_analysis_cos = self.cos_m * aw[:, None]
-        self._fourier_analysis_sin = self.sin_m * aw[:, None]
-        self._dphi = mm
+        self._trig_analysis = np.ascontiguousarray(np.concatenate([self.cos_m, self.sin_m], axis=0) * np.tile(aw, 2)[:, None])
+        # the stacked [cos; sin] matrices of the Fourier step: values and d/dphi (synth_first)
+        self._trig_values = np.ascontiguousarray(np.concatenate([self.cos_m, self.sin_m], axis=0))
+        # synthesis: rows in (m, s) order (s = cos, sin), for values, d/dphi and d2/dphi2
+        inter = lambda c, s_: np.ascontiguousarray(np.stack([c, s_], axis=1).reshape(2 * (p + 1), -1))
+        self._trig_ms = inter(self.cos_m, self.sin_m)
+        self._trig_ms_p = inter(-mm * self.sin_m, mm * self.cos_m)
+        self._trig_ms_pp = inter(-mm * mm * self.cos_m, -mm * mm * self.sin_m)
+        self._dlam_T = np.ascontiguousarray(np.swapaxes(self.dlam, 1, 2))
+        self._d2lam_T = np.ascontiguousarray(np.swapaxes(self.d2lam, 1, 2))
 
     # ---------------------------------------------------------------- padding
     def pad(self, coeffs):
@@ -176,71 +183,70 @@ class Transform:
         return padded[..., ks, ms, ns]
 
     # ---------------------------------------------------------------- synthesis
-    def _legendre_step(self, padded, table):
-        # padded (..., 2, M, N) ; table (M, I, N) -> (..., 2, M, I): one batched GEMM over m
-        lead = padded.shape[:-2]
-        B = math.prod(lead)
-        X = padded.reshape(B, self.p + 1, self.p + 1).transpose(1, 2, 0)           # (M, N, B)
-        Y = np.matmul(table, X)                                                  # (M, I, B)
-        return Y.transpose(2, 0, 1).reshape(lead + (self.p + 1, table.shape[1]))
+    def _pad_msbn(self, coeffs):
+        """Flat (..., k) -> padded (M [m], 2 [cos/sin], B, N [n]) with B the product of the
+        leading axes: the layout in which both synthesis GEMMs read their operands in place."""
+        coeffs = np.asarray(coeffs, dtype=float)
+        k = coeffs.shape[-1]
+        if k not in (self.ncoef, self.nfull):
+            raise ValueError(f"expected {self.ncoef} or {self.nfull} coefficients for p = {self.p}, got {k}")
+        B = math.prod(coeffs.shape[:-1])
+        M = self.p + 1
+        ks, ms, ns = (a[:k] for a in self._pad_index)
+        out = np.zeros((M, 2, B, M))
+        out[ms, ks, :, ns] = coeffs.reshape(B, k).T
+        return out.reshape(M, 2 * B, M)
 
-    def _fourier_step(self, F, cosm, sinm):
-        # F (..., 2, M, I) -> (..., I, J): one GEMM with the stacked trig matrices
-        lead = F.shape[:-3]
-        M, I = F.shape[-2], F.shape[-1]
-        B = math.prod(lead)
-        A = F.reshape(B, 2 * M, I).transpose(0, 2, 1).reshape(B * I, 2 * M)
-        out = A @ np.concatenate([cosm, sinm], axis=0)
-        return out.reshape(lead + (I, cosm.shape[1]))
+    def _synth_layout(self, padded, table_T, trig, lead):
+        """Legendre step (one GEMM per m: (2B, N) @ (N, I)) then the Fourier step as one GEMM of
+        the (B I, 2M) matrix read in place (column index (m, s)) with trig ((m, s), J) rows."""
+        Z = np.matmul(padded, table_T)                                   # (M, 2B, I) = [m, s, b, i]
+        M, B2, I = Z.shape
+        out = Z.reshape(2 * M, (B2 // 2) * I).T @ trig                   # (B I, J)
+        return out.reshape(lead + (I * trig.shape[1],))
 
     def synth(self, coeffs, d=None):
         """Q: values on the q-grid, (..., npts).  d selects a derivative: None, 't', 'p', 'tt', 'tp', 'pp'."""
-        padded = self.pad(coeffs)
-        table = {None: self.lam, "p": self.lam, "pp": self.lam,
-                 "t": self.dlam, "tp": self.dlam, "tt": self.d2lam}[d]
-        F = self._legendre_step(padded, table)
-        m = self._dphi
-        if d in (None, "t", "tt"):
-            cosm, sinm = self.cos_m, self.sin_m
-        elif d in ("p", "tp"):
-            cosm, sinm = -m * self.sin_m, m * self.cos_m
-        else:  # 'pp'
-            cosm, sinm = -m * m * self.cos_m, -m * m * self.sin_m
-        g = self._fourier_step(F, cosm, sinm)
-        return g.reshape(g.shape[:-2] + (self.npts,))
+        coeffs = np.asarray(coeffs, dtype=float)
+        table = {None: self._lam_T, "p": self._lam_T, "pp": self._lam_T,
+                 "t": self._dlam_T, "tp": self._dlam_T, "tt": self._d2lam_T}[d]
+        trig = {None: self._trig_ms, "t": self._trig_ms, "tt": self._trig_ms,
+                "p": self._trig_ms_p, "tp": self._trig_ms_p, "pp": self._trig_ms_pp}[d]
+        return self._synth_layout(self._pad_msbn(coeffs), table, trig, coeffs.shape[:-1])
 
     def synth_first(self, coeffs):
         """Values and first derivatives (values, d/dtheta, d/dphi), each (..., npts): two
-        Legendre steps and one Fourier GEMM for the values and the phi derivative together."""
-        padded = self.pad(coeffs)
-        m = self._dphi
-        F0 = self._legendre_step(padded, self.lam)
-        F1 = self._legendre_step(padded, self.dlam)
-        both = self._fourier_step(F0, np.concatenate([self.cos_m, -m * self.sin_m], axis=1),
-                                  np.concatenate([self.sin_m, m * self.cos_m], axis=1))
-        g0, gp = both[..., :self.nlon], both[..., self.nlon:]
-        gt = self._fourier_step(F1, self.cos_m, self.sin_m)
-        shape = gt.shape[:-2] + (self.npts,)
-        return g0.reshape(shape), gt.reshape(shape), gp.reshape(shape)
+        Legendre steps and three Fourier GEMMs."""
+        coeffs = np.asarray(coeffs, dtype=float)
+        lead = coeffs.shape[:-1]
+        padded = self._pad_msbn(coeffs)
+        Z0 = np.matmul(padded, self._lam_T)
+        Z1 = np.matmul(padded, self._dlam_T)
+        M, B2, I = Z0.shape
+        A0 = Z0.reshape(2 * M, (B2 // 2) * I).T
+        A1 = Z1.reshape(2 * M, (B2 // 2) * I).T
+        shape = lead + (self.npts,)
+        return ((A0 @ self._trig_ms).reshape(shape), (A1 @ self._trig_ms).reshape(shape),
+                (A0 @ self._trig_ms_p).reshape(shape))
 
     def synth_all(self, coeffs, values=True):
         """Values and first and second derivatives at once: dict with keys '', 't', 'p', 'tt', 'tp', 'pp'
         ('' left out when not values)."""
-        padded = self.pad(coeffs)
-        m = self._dphi
+        coeffs = np.asarray(coeffs, dtype=float)
+        lead = coeffs.shape[:-1]
+        padded = self._pad_msbn(coeffs)
+        A = {}
+        for name, table in (("0", self._lam_T), ("1", self._dlam_T), ("2", self._d2lam_T)):
+            Z = np.matmul(padded, table)
+            M, B2, I = Z.shape
+            A[name] = Z.reshape(2 * M, (B2 // 2) * I).T
         out = {}
-        F0 = self._legendre_step(padded, self.lam)
-        F1 = self._legendre_step(padded, self.dlam)
-        F2 = self._legendre_step(padded, self.d2lam)
-        cs = (self.cos_m, self.sin_m)
-        dcs = (-m * self.sin_m, m * self.cos_m)
-        ddcs = (-m * m * self.cos_m, -m * m * self.sin_m)
-        for key, F, trig in (("", F0, cs), ("p", F0, dcs), ("pp", F0, ddcs),
-                             ("t", F1, cs), ("tp", F1, dcs), ("tt", F2, cs)):
+        shape = lead + (self.npts,)
+        for key, a, trig in (("", "0", self._trig_ms), ("p", "0", self._trig_ms_p), ("pp", "0", self._trig_ms_pp),
+                             ("t", "1", self._trig_ms), ("tp", "1", self._trig_ms_p), ("tt", "2", self._trig_ms)):
             if key == "" and not values:
                 continue
-            g = self._fourier_step(F, *trig)
-            out[key] = g.reshape(g.shape[:-2] + (self.npts,))
+            out[key] = (A[a] @ trig).reshape(shape)
         return out
 
     # ---------------------------------------------------------------- analysis
@@ -251,28 +257,29 @@ class Transform:
         L2 projection onto it for fields of degree <= q.
         """
         values = np.asarray(values, dtype=float)
-        return self._analysis_like(values, self._fourier_analysis_cos, self._fourier_analysis_sin,
-                                   self.glw, full)
+        return self._analysis_like(values, self._trig_analysis, self.glw, full)
 
-    def _analysis_like(self, values, acos, asin, latw, full):
-        """Fourier projection with (acos, asin), latitude weights, then the transposed Legendre step."""
+    def _analysis_like(self, values, trig, latw, full):
+        """Fourier projection with trig = [acos; asin] (2M, nlon), latitude weights, then the
+        transposed Legendre step.  Layout (s = cos/sin, m, b = batch, i = latitude) throughout,
+        so that both GEMMs read their operands in place and the result is gathered once."""
         lead = values.shape[:-1]
         B = math.prod(lead)
-        g = values.reshape(B * self.nlat, self.nlon)
-        F = g @ np.concatenate([acos, asin], axis=0).T                     # (B*I, 2M)
         M = self.p + 1
-        F = F.reshape(B, self.nlat, 2 * M)
+        g = values.reshape(B * self.nlat, self.nlon)
+        F = trig @ g.T                                                       # (2M, B*I): [s, m, b, i]
+        F = F.reshape(2, M, B, self.nlat)
         if latw is not None:
-            F = F * latw[None, :, None]
-        Xm = F.reshape(B, self.nlat, 2, M).transpose(3, 1, 2, 0).reshape(M, self.nlat, 2 * B)   # (M, I, 2B)
-        padded = np.matmul(self._lam_T, Xm)                                 # (M, N, 2B)
-        padded = padded.reshape(M, M, 2, B).transpose(3, 2, 0, 1).reshape(lead + (2, M, M))
-        return self.unpad(padded, full=full)
+            F *= latw
+        padded = np.matmul(self._lam_T, F.transpose(0, 1, 3, 2))             # (2, M, N, B)
+        k = self.nfull if full else self.ncoef
+        out = padded.reshape(2 * M * M, B)[self._pad_flat[:k]]              # (k, B)
+        return np.ascontiguousarray(out.T).reshape(lead + (k,))
 
     def synth_transpose(self, values, full=False):
         """Q^T: the transpose of synth as a linear map, (..., npts) -> (..., C) or (..., (p+1)^2)."""
         values = np.asarray(values, dtype=float)
-        return self._analysis_like(values, self.cos_m, self.sin_m, None, full)
+        return self._analysis_like(values, self._trig_values, None, full)
 
     def integrate(self, values):
         """Integral over the unit sphere of a q-grid field (..., npts)."""
@@ -372,17 +379,51 @@ def rotate_z(coeffs, p, alpha):
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    ns, ms, ks = index_tables(p)
+    cos_idx, sin_idx, m_cos, m0 = _z_rotation_index(p)
     alpha = np.asarray(alpha, dtype=float)[..., None]
     out = np.empty_like(coeffs)
-    cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
-    sin_idx = cos_idx + (p + 1 - ms[cos_idx])                 # the sine partner follows the cosine block
     a, b = coeffs[..., cos_idx], coeffs[..., sin_idx]
-    ca, sa = np.cos(ms[cos_idx] * alpha), np.sin(ms[cos_idx] * alpha)
+    ang = m_cos * alpha
+    ca, sa = np.cos(ang), np.sin(ang)
     out[..., cos_idx] = a * ca + b * sa
     out[..., sin_idx] = b * ca - a * sa
-    m0 = np.nonzero(ms == 0)[0]
     out[..., m0] = coeffs[..., m0]
+    return out
+
+
+@lru_cache(maxsize=None)
+def _z_rotation_index(p):
+    """rotate_z's index sets of the full layout: cosine coefficients with m > 0, their sine
+    partners (which follow the cosine block), their orders m, and the m = 0 coefficients."""
+    ns, ms, ks = index_tables(p)
+    cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
+    sin_idx = cos_idx + (p + 1 - ms[cos_idx])
+    return cos_idx, sin_idx, ms[cos_idx].astype(float), np.nonzero(ms == 0)[0]
+
+
+@lru_cache(maxsize=None)
+def degree_order(p):
+    """(perm, offsets): the full layout's indices sorted by degree n (within a degree in the
+    order of wigner_blocks' idx), and where each degree starts in that order ((p+2,))."""
+    ns = index_tables(p)[0]
+    perm = np.concatenate([np.nonzero(ns == n)[0] for n in range(p + 1)])
+    offsets = np.concatenate([[0], np.cumsum([np.count_nonzero(ns == n) for n in range(p + 1)])])
+    perm.flags.writeable = False
+    return perm, offsets
+
+
+def apply_degree_blocks(coeffs, p, blocks, transpose=False):
+    """coeffs (..., (p+1)^2) times the block-diagonal matrix of wigner_blocks-like ``blocks``
+    ((idx, B_n) per degree) from the right: out[..., idx_n] = coeffs[..., idx_n] @ B_n^T (or
+    @ B_n with transpose).  One gather into degree order, contiguous slices, one scatter."""
+    perm, offs = degree_order(p)
+    x = coeffs[..., perm]
+    y = np.empty_like(x)
+    for n, (_, block) in enumerate(blocks):
+        a, b = offs[n], offs[n + 1]
+        np.matmul(x[..., a:b], block if transpose else block.T, out=y[..., a:b])
+    out = np.empty_like(x)
+    out[..., perm] = y
     return out
 
 
@@ -391,10 +432,7 @@ def rotate_y(coeffs, p, beta):
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    out = np.empty_like(coeffs)
-    for idx, block in wigner_blocks(p, float(beta)):
-        out[..., idx] = coeffs[..., idx] @ block.T
-    return out
+    return apply_degree_blocks(coeffs, p, wigner_blocks(p, float(beta)))
 
 
 def rotate_to_pole(coeffs, p, theta0, phi0):

@@ -67,7 +67,9 @@ DEFAULT_EPS = 1e-8
 # on 2 cores; docs/far_field.md): 3.91 ns CPU per pair (direct, N = 128; was 3.6) and 235 us CPU
 # per point (fmm eps 1e-8, N = 64; was 200); measured crossover N ~ 150 vesicles (power laws of
 # the wall and CPU times), the model below switches at N = 139 (it said 129 before).
-DIRECT_SECONDS_PER_PAIR = 3.9e-9
+# Second wave: the vectorized kernels (pairsum.h, AVX-512 clone) 1.37-1.47 ns CPU per pair for two
+# vesicles at p = 6..16 (benchmarks/cost_model.py).
+DIRECT_SECONDS_PER_PAIR = 1.4e-9
 FMM_SECONDS_PER_POINT = {1e-6: 1.0e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
 # targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
 # moved onto it (FMM backend only)

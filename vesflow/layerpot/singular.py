@@ -52,9 +52,7 @@ def analysis_matrix(p):
 
 def _rotate_back(rows, p, theta0, phi0s):
     """Apply R_t^T = R_z(phi0)^T R_y(theta0)^T to full-layout rows (..., J, ..., K): J targets on one latitude."""
-    out = np.empty_like(rows)
-    for idx, block in sph.wigner_blocks(p, float(theta0)):
-        out[..., idx] = rows[..., idx] @ block                       # D_y^T acting on row vectors
+    out = sph.apply_degree_blocks(rows, p, sph.wigner_blocks(p, float(theta0)), transpose=True)  # D_y^T on rows
     alpha = -np.asarray(phi0s).reshape((-1,) + (1,) * (rows.ndim - 2))
     return sph.rotate_z(out, p, alpha)                                # D_z(phi0)^T = D_z(-phi0)
 
