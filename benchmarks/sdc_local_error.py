@@ -1,7 +1,7 @@
 """One sdc step of the accuracy-cost scene against a fine solution of the same step (issue 18).
 
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sdc_local_error.py \
-        [--p 8] [--t0 4] [--dts 0.125,0.25,0.5,1] [--sweeps 1,2,3,5,8] [--quadrature lobatto,radau]
+        [--p 8] [--t0 7] [--dts 0.125,0.25,0.5,1] [--sweeps 1,2,3,5,8] [--quadrature lobatto,radau]
 
 The state at t0 comes from fixed sdc steps of 0.25 (runs/accuracy_cost.toml, no output).  From
 it, for each dt and quadrature: the step with 3 nodes and K sweeps (K = --sweeps), against 8
@@ -20,9 +20,8 @@ def state_at(p, t0):
     from vesflow import options as optmod, scene as scenemod, study
     from vesflow.simulation import Run
     scene = scenemod.load_scene("runs/accuracy_cost.toml")
-    sc = study.case_scene(scene, study.Case(p, 1e-2, 0.0, "sdc"))
-    opts = optmod.read_options(optmod.dict_getter({"-ts_type": "sdc", "-ves_adapt": "none", "-ts_dt": 0.25,
-                                                   "-ts_max_time": t0}), sc)
+    sc = study.case_scene(scene, study.Case(p, 1e-2, 0.0, "sdc"), horizon=t0)
+    opts = optmod.read_options(optmod.dict_getter({"-ts_type": "sdc", "-ves_adapt": "none", "-ts_dt": 0.25}), sc)
     run = Run(sc, opts, writer=None)
     run.run()
     return run.stepper
@@ -31,7 +30,7 @@ def state_at(p, t0):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--p", type=int, default=8)
-    ap.add_argument("--t0", type=float, default=4.0)
+    ap.add_argument("--t0", type=float, default=7.0)
     ap.add_argument("--dts", default="0.125,0.25,0.5,1")
     ap.add_argument("--sweeps", default="1,2,3,5,8")
     ap.add_argument("--quadrature", default="lobatto,radau")
