@@ -32,14 +32,14 @@ def case_setup(name, p):
     raise ValueError(f"case = {name!r}: must be prolate or pair")
 
 
-def final_state(name, p, dt, scheme, nodes=3, sweeps=2, near_factor=1.0):
+def final_state(name, p, dt, scheme, nodes=3, sweeps=2, near_factor=1.0, quadrature="lobatto"):
     """Position coefficients at T after fixed steps dt (scheme euler or sdc); and the solves' GMRES iterations."""
     from vesflow.layerpot.evaluator import Settings
     from vesflow.sdc import SDC
     from vesflow.stepper import Stepper
     c, params, phys, T = case_setup(name, p)
     st = Stepper(c, p, params, phys, Settings(near_factor=near_factor))
-    sdc = SDC(st, nodes, sweeps) if scheme == "sdc" else None
+    sdc = SDC(st, nodes, sweeps, quadrature) if scheme == "sdc" else None
     its = 0
     for _ in range(int(round(T / dt))):
         its += (sdc.step(dt)[0] if sdc else st.step(dt)).its

@@ -135,3 +135,13 @@ def test_error_estimate_per_regime_for_two_close_vesicles():
     print("error estimate", est)
     assert est["self"] < 1e-3 and est["near"] < 1e-2 and est["far"] < 1e-3
 
+
+
+def test_near_blend_weight_is_c2_and_switches_from_one_to_zero():
+    from vesflow.layerpot.near import blend_weight
+    s = np.array([-1.0, 0.0, 0.5, 1.0, 2.0])
+    assert np.allclose(blend_weight(s), [1.0, 1.0, 0.5, 0.0, 0.0])
+    e = 1e-4                                   # first and second derivatives vanish at both ends
+    for s0 in (0.0, 1.0):
+        w = blend_weight(np.array([s0 - e, s0, s0 + e]))
+        assert abs(w[2] - w[0]) / (2 * e) < 1e-6 and abs(w[2] - 2 * w[1] + w[0]) / e ** 2 < 1e-2      # 10 e: no jump in w''

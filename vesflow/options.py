@@ -100,6 +100,9 @@ REGISTRY: tuple[Option, ...] = (
        ge=2, le=256, default_text="4p"),
     _O("-ves_near_factor", float, 1.0, "near-zone width h_n = factor * sqrt(A_max / q_near)", "quadrature",
        gt=0, le=10),
+    _O("-ves_near_blend", float, 0.0, "blend the near-singular value into the smooth rule over "
+       "h_n .. h_n (1 + blend) (C^2 weight) instead of switching at h_n: a velocity smooth in the positions, "
+       "which high-order time steps need (docs/dynamics.md); 0 = switch", "quadrature", ge=0, le=1),
     _O("-ves_far", str, "auto", "far-field sum: auto = the faster of direct and fmm by the cost model "
        "measured on this machine (docs/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
        choices=("auto", "direct", "fmm", "ewald")),
@@ -117,14 +120,18 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ts_type", str, "euler", "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
        "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py)",
        "time stepping", choices=("euler", "sdc")),
-    _O("-ts_sdc_nodes", int, 3, "Gauss-Lobatto nodes of an sdc step (nodes - 1 substeps)", "time stepping",
+    _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
+    _O("-ts_sdc_quadrature", str, "lobatto", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
+       "or radau (the step's start and Radau IIA nodes, order 2 nodes - 3, L-stable: stiff modes damped)",
+       "time stepping", choices=("lobatto", "radau")),
     _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
        ge=1, le=20),
     _O("-ves_adapt", str, None, "adaptive time step: none (fixed dt), doubling (one step vs two "
        "half steps), invariants (relative change of area and volume), sweeps (difference of the last "
-       "two sdc sweeps, -ts_type sdc)", "time stepping",
-       choices=("none", "doubling", "invariants", "sweeps"), default_text="doubling (euler), sweeps (sdc)"),
+       "two sdc sweeps), contraction (error of the kept sdc state from its sweeps' contraction; "
+       "misses the stiff collocation error, docs/dynamics.md)", "time stepping",
+       choices=("none", "doubling", "invariants", "sweeps", "contraction"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
     _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",
        gt=0, le=1),
@@ -360,8 +367,8 @@ def read_options(getter, scene=None) -> OptionValues:
             vals["checkpoint_every"] = scene.output.every
     if vals["adapt"] is None:
         vals["adapt"] = "sweeps" if vals["ts_type"] == "sdc" else "doubling"
-    elif vals["adapt"] == "sweeps" and vals["ts_type"] != "sdc":
-        _fail(OPTIONS["-ves_adapt"], "sweeps", f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
+    elif vals["adapt"] in ("sweeps", "contraction") and vals["ts_type"] != "sdc":
+        _fail(OPTIONS["-ves_adapt"], vals["adapt"], f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
     if vals["ts_type"] == "sdc" and vals["coupling"] != "implicit":
         _fail(OPTIONS["-ts_type"], "sdc", "needs -ves_coupling implicit (the quadrature integrates the "
               "velocity field; lagged coupling terms are not it)")

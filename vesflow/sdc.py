@@ -17,7 +17,8 @@ with its tension (inextensibility), implicit, on the geometry Y = X^{k+1}_m froz
 the substep; the rest of the linearization is dropped (O(h e), which keeps the gain of one order
 per sweep).  In the linear model F = J X, B = J this is implicit-Euler SDC.  Each sweep gains one
 order up to the quadrature's 2M: K sweeps give order min(K + 1, 2M).  The difference of the
-last two sweeps at t_M is the error estimate of the adaptive step.
+last two sweeps at t_M is the error estimate of the adaptive step (or error_estimate, from the
+sweeps' contraction).
 """
 from __future__ import annotations
 
@@ -37,32 +38,78 @@ def lobatto_nodes(n):
     return np.concatenate([[0.0], np.sort(0.5 * (inner.real + 1.0)), [1.0]])
 
 
-def integration_matrix(tau):
-    """S[m, j] = int_{tau_m}^{tau_{m+1}} l_j(t) dt, l_j the Lagrange polynomials of the nodes tau."""
-    n = len(tau)
-    S = np.empty((n - 1, n))
+def radau_nodes(n):
+    """0 and the n - 1 >= 1 right Radau (Radau IIA) nodes on (0, 1]: the roots of
+    P_{n-1}(2t - 1) - P_{n-2}(2t - 1) (1/3 and 1 for n = 3).  0 is the step's start, not a
+    quadrature node: the collocation on the Radau nodes is L-stable (its stability function
+    vanishes at infinity), Lobatto's is not (it tends to -1)."""
+    if n < 2:
+        raise ValueError(f"Radau needs at least 2 nodes (the start and 1), got {n}")
+    L = np.polynomial.legendre.Legendre
+    r = (L.basis(n - 1) - L.basis(n - 2)).roots() if n > 2 else np.array([1.0])
+    return np.concatenate([[0.0], np.sort(0.5 * (np.real(r) + 1.0))])
+
+
+def integration_matrix(tau, quad=None):
+    """S[m, j] = int_{tau_m}^{tau_{m+1}} l_j(t) dt, l_j the Lagrange polynomials of the
+    quadrature nodes quad (default: all of tau)."""
+    quad = tau if quad is None else quad
+    n = len(quad)
+    S = np.empty((len(tau) - 1, n))
     for j in range(n):
         y = np.zeros(n)
         y[j] = 1.0
-        lj = np.polynomial.Polynomial.fit(tau, y, n - 1, domain=[0, 1], window=[0, 1]).integ()
+        lj = np.polynomial.Polynomial.fit(quad, y, n - 1, domain=[0, 1], window=[0, 1]).integ()
         S[:, j] = np.diff(lj(tau))
     return S
 
 
-class SDC:
-    """SDC steps of a Stepper: nodes Gauss-Lobatto nodes, sweeps correction sweeps."""
+QUADRATURES = ("lobatto", "radau")
 
-    def __init__(self, stepper, nodes=3, sweeps=2):
+
+def collocation_order(nodes, quadrature):
+    """Order of the collocation solution the sweeps converge to: 2 (nodes - 1) for Gauss-Lobatto,
+    2 (nodes - 1) - 1 for Radau IIA (nodes counts the step's start)."""
+    return 2 * (nodes - 1) - (quadrature == "radau")
+
+
+RHO_MAX = 0.9     # sweeps contracting slower than this: the step is treated as not converging
+
+
+def error_estimate(differences):
+    """Local error of the kept K-sweep state from d_k = max |X^k_M - X^{k-1}_M| (k = 1 .. K,
+    X^0 the provisional solution).  The sweeps contract the error by rho = d_K / d_{K-1} per
+    sweep (rho ~ L dt for the explicitly lagged part of the correction equation, L its Lipschitz
+    constant), so X^K is off by about d_K rho / (1 - rho): an estimate of the kept state, not
+    of the sweep before it, that grows without bound as the sweeps stop converging (rho -> 1,
+    large steps).  d_K alone (K = 1, or d_{K-1} = 0) is the estimate of the state before the
+    last sweep.  rho is clipped to RHO_MAX."""
+    if len(differences) < 2 or differences[-2] <= 0:
+        return float(differences[-1]) if differences else 0.0
+    rho = min(differences[-1] / differences[-2], RHO_MAX)
+    return float(differences[-1] * rho / (1.0 - rho))
+
+
+class SDC:
+    """SDC steps of a Stepper: nodes substep ends (with the start; Gauss-Lobatto or Radau IIA),
+    sweeps correction sweeps."""
+
+    def __init__(self, stepper, nodes=3, sweeps=2, quadrature="lobatto"):
         if stepper.coupling != "implicit":
             raise ValueError("-ts_type sdc needs -ves_coupling implicit (the quadrature integrates the "
                              "velocity field; lagged coupling terms are not it)")
         self.stepper = stepper
-        self.tau = lobatto_nodes(nodes)
-        self.S = integration_matrix(self.tau)
+        if quadrature not in QUADRATURES:
+            raise ValueError(f"quadrature = {quadrature!r}: must be one of {', '.join(QUADRATURES)}")
+        self.tau = lobatto_nodes(nodes) if quadrature == "lobatto" else radau_nodes(nodes)
+        self.first = 0 if quadrature == "lobatto" else 1           # first quadrature node
+        self.S = integration_matrix(self.tau, self.tau[self.first:])
         self.sweeps = int(sweeps)
         stepper.lp_cache_size = max(stepper.lp_cache_size, nodes)   # X_0 reused by every sweep
         self.iterations = 0
-        self.error = None                 # estimate of the last step
+        self.error = None                 # d_K of the last step: the error of K - 1 sweeps (-ves_adapt sweeps)
+        self.contraction_error = None     # error_estimate of the last step (-ves_adapt contraction)
+        self.differences = []             # max |X^k_M - X^{k-1}_M| of the last step, k = 1 .. K
 
     def _solve(self, dt, X, displacement=None):
         st = self.stepper
@@ -77,23 +124,23 @@ class SDC:
     def step(self, dt):
         """One step of dt from the stepper's state.  Returns (Solution, error estimate): the
         Solution is the velocity and tension at the end node of the last sweep but one (the
-        final state's to the error estimate); the estimate is max |X^K_M - X^{K-1}_M| on the grid
-        (of the order of the local error of K - 1 sweeps)."""
+        final state's to the error estimate); the estimate is d_K = max |X^K_M - X^{K-1}_M| on
+        the grid (self.error; the contraction estimate of the kept state: self.contraction_error)."""
         st = self.stepper
         p, M = st.p, len(self.tau) - 1
         h = dt * np.diff(self.tau)
         self.iterations = 0
         surf = [st.surface]
-        F = [self._solve(0.0, surf[0])]
+        F = [self._solve(0.0, surf[0]) if self.first == 0 else None]
         for m in range(M):                                  # provisional: first-order steps
             u = self._solve(h[m], surf[m]).u
             surf.append(Surface(surf[m].coeffs + h[m] * u, p))
             F.append(self._solve(0.0, surf[m + 1]))
         X = [s.coeffs for s in surf]
-        prev_end, F_end = X[M], F[M]
+        ends, F_end = [X[M]], F[M]
         for k in range(self.sweeps):
             last_sweep = k == self.sweeps - 1
-            Fu = np.stack([f.u for f in F])
+            Fu = np.stack([f.u for f in F[self.first:]])
             Xn, Fn, sn = [X[0]], [F[0]], [surf[0]]
             for m in range(M):
                 if m > 0 and not last_sweep:
@@ -105,8 +152,12 @@ class SDC:
                 sn.append(Surface(Xn[m + 1], p))
             if not last_sweep:
                 Fn.append(self._solve(0.0, sn[M]))
-            prev_end, F_end, X, F, surf = X[M], F[M], Xn, Fn, sn
-        err = self.error = float(np.abs(sph.transform(p).synth(X[M] - prev_end)).max())
+            F_end, X, F, surf = F[M], Xn, Fn, sn
+            ends.append(X[M])
+        T = sph.transform(p)
+        self.differences = [float(np.abs(T.synth(b - a)).max()) for a, b in zip(ends[:-1], ends[1:])]
+        err = self.error = self.differences[-1]
+        self.contraction_error = error_estimate(self.differences)
         st.coeffs = X[M].copy()
         st.time += dt
         return Solution(F_end.u, F_end.sigma, self.iterations, F_end.reason), err

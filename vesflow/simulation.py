@@ -65,7 +65,7 @@ class Run:
         self.scene, self.opts, self.writer = scene, opts, writer
         self.p = scene.p
         self.timers = Timers()
-        settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"],
+        settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"], near_blend=opts["near_blend"],
                             backend=_backend(opts["far"]), fmm_eps=opts["far_tol"],
                             period=scene.periodic_length or None)
         params = vesicle_params(scene)
@@ -80,9 +80,13 @@ class Run:
         self.err_order = 1                # k of the step update dt (beta tol dt / err)^(1/k)
         if opts["ts_type"] == "sdc":
             from .sdc import SDC
-            self.sdc = SDC(self.stepper, opts["ts_sdc_nodes"], opts["ts_sdc_sweeps"])
-            K, top = opts["ts_sdc_sweeps"], 2 * opts["ts_sdc_nodes"] - 2     # order min(K + 1, top)
-            self.err_order = {"doubling": min(K + 1, top), "sweeps": min(K, top)}.get(opts["adapt"], 1)
+            from .sdc import collocation_order
+            self.sdc = SDC(self.stepper, opts["ts_sdc_nodes"], opts["ts_sdc_sweeps"], opts["ts_sdc_quadrature"])
+            K, top = opts["ts_sdc_sweeps"], collocation_order(opts["ts_sdc_nodes"], opts["ts_sdc_quadrature"])
+            # sweeps: d_K, the local error of K - 1 sweeps, dt^(K + 1); contraction: the estimate of
+            # the kept K-sweep state (sdc.error_estimate), dt^(K + 2) for K >= 2 (one sweep: d_1)
+            self.err_order = {"doubling": min(K + 1, top), "sweeps": min(K, top),
+                              "contraction": min(K + 1, top) if K >= 2 else 1}.get(opts["adapt"], 1)
         if phys.repulsion_radius > 0:
             from .repulsion import repulsion_force
             R = phys.repulsion_radius
@@ -143,6 +147,8 @@ class Run:
                 err = self._doubling_error(one, st.coeffs)
             elif adapt == "sweeps":
                 err = self.sdc.error
+            elif adapt == "contraction":
+                err = self.sdc.contraction_error
             elif adapt == "invariants":
                 S = st.surface
                 err = float(max(np.abs(S.area() / self.area0 - 1).max(), np.abs(S.volume() / self.volume0 - 1).max()))

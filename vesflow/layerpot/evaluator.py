@@ -26,8 +26,10 @@ from .singular import SelfOperators
 class Settings:
     """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
 
-    def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None):
+    def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
+                 near_blend=0.0):
         self.q_self, self.q_far = q_self, q_far
+        self.near_blend = float(near_blend)   # width of the near/smooth blend beyond h_n, in units of h_n
         self.near_factor, self.backend, self.fmm_eps = near_factor, backend, fmm_eps
         self.period = period or None     # triply periodic cube (or box) side, None: free space
 
@@ -141,8 +143,11 @@ class LayerPotentials:
         proj = nearmod.Projection(self.surface.coeffs, self.p, tpos, pairs[:, 1],
                                   self.Tq.theta[it], self.Tq.phi[jp])
         h = self.h[pairs[:, 1]]
-        # targets farther than h from their projection are in the smooth-rule zone already
-        inside_zone = np.abs(proj.signed_distance) < h
+        # targets farther than h (1 + blend) from their projection are in the smooth-rule zone
+        blend = getattr(self.settings, "near_blend", 0.0)
+        inside_zone = np.abs(proj.signed_distance) < h * (1.0 + blend)
+        if blend > 0:
+            info["blend"] = nearmod.blend_weight((np.abs(proj.signed_distance[inside_zone]) / h[inside_zone] - 1.0) / blend)
         info["pairs"] = np.ascontiguousarray(pairs[inside_zone])
         info["tpos"] = np.ascontiguousarray(tpos[inside_zone])
         P = len(info["pairs"])
@@ -243,7 +248,10 @@ class LayerPotentials:
             u0 -= 0.5 * info["side"][:, None] * g0
         w = info["weights"]
         nearval = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line)
-        np.add.at(vals, pairs[:, 0], nearval - smooth)
+        if "blend" in info:
+            np.add.at(vals, pairs[:, 0], info["blend"][:, None] * (nearval - smooth))
+        else:
+            np.add.at(vals, pairs[:, 0], nearval - smooth)
         return vals
 
     def evaluate_at(self, targets, f, g=None):

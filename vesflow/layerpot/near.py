@@ -19,6 +19,14 @@ from .._kernels import series
 L_POINTS = 8
 
 
+def blend_weight(s):
+    """1 for s <= 0, 0 for s >= 1, the C^2 quintic 1 - (10 s^3 - 15 s^4 + 6 s^5) between: the
+    weight of the near-singular value beyond h_n (s = (d / h_n - 1) / blend), so that the
+    velocity is a C^2 function of the positions where targets leave the near zone."""
+    s = np.clip(np.asarray(s, dtype=float), 0.0, 1.0)
+    return 1.0 - s ** 3 * (10.0 - 15.0 * s + 6.0 * s ** 2)
+
+
 def near_distance(area, q, factor=1.0):
     """Near-zone width h_n = factor * sqrt(A / q) (paper 3.2.2, A the largest vesicle area)."""
     return factor * np.sqrt(np.max(area) / q) * np.ones_like(np.asarray(area, dtype=float))
