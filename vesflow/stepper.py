@@ -46,7 +46,7 @@ class Stepper:
     """Holds the state (position coefficients) and advances it with first-order steps."""
 
     def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
-                 q_force=None, timers=None, ksp_prefix=None, part=None):
+                 q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None):
         self.coeffs = np.array(coeffs, dtype=float)
         self.part = part            # vesflow.parallel.Partition (None: one process owns every vesicle)
         self.params_local = params if part is None else params.take(part.idx)
@@ -58,6 +58,7 @@ class Stepper:
         self.q_force = q_force or 2 * p
         self.timers = timers or Timers()
         self.ksp_prefix = ksp_prefix
+        self.pc_precision = pc_precision   # of the default block-Jacobi PC (None: -ves_pc_precision)
         self.time = 0.0
         self.last = None            # last Solution: initial guess of the next solve
         self.extra_force = None     # hook: (surface, geometry) -> traction on the force grid (repulsion)
@@ -217,7 +218,7 @@ class Stepper:
     def default_pc_context(self):
         """The block-Jacobi PC context, kept across solves (it reuses LU factors, -ves_pc_lag)."""
         if getattr(self, "_pc_context", None) is None:
-            self._pc_context = _default_pc()
+            self._pc_context = _default_pc(self.pc_precision)
         return self._pc_context
 
     def velocity(self):
@@ -332,9 +333,9 @@ def residual_modes(op, r, bnorm, x=None):
     return out
 
 
-def _default_pc():
+def _default_pc(precision=None):
     from .precond import BlockJacobi
-    return BlockJacobi()
+    return BlockJacobi(precision=precision)
 
 
 def _reason_name(reason):
