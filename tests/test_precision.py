@@ -52,9 +52,9 @@ def test_layer_potentials_single_self_part_and_error_estimate():
         Settings(self_precision="half")
 
 
-# measured (p = 8 pair in shear, lambda = 5, 3 steps of 0.05, GMRES rtol 1e-8, 7 iterations per
+# measured (p = 8 pair in shear, lambda = 5, 3 steps of 0.05, rtol 1e-8, 6-7 iterations per
 # solve in all four): the centroid displacement differs from double by 2.3e-8 (self single),
-# 4.5e-8 (pc single), 3.1e-8 (both), relative; bound 1e-6
+# 3.1e-10 (pc single, fgmres), 7.6e-9 (both), relative; bound 1e-6
 @pytest.mark.parametrize("self_prec,pc_prec", [("single", "double"), ("double", "single"), ("single", "single")])
 def test_pair_in_shear_single_precision_close_to_double(self_prec, pc_prec):
     runs = {}
@@ -77,6 +77,7 @@ def test_pair_in_shear_single_precision_close_to_double(self_prec, pc_prec):
     want_pc = np.float32 if pc_prec == "single" else np.float64
     assert all(lu.dtype == want_pc for lu, _ in pc.lu)
     assert all(a.dtype == want_pc for parts in pc.parts for a in parts)
+    assert st_s.default_ksp_type() == ("fgmres" if pc_prec == "single" else "gmres")
 
 
 def test_options_are_read_checked_and_shown():

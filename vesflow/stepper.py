@@ -169,7 +169,7 @@ class Stepper:
         else:
             x.set(0.0)
         ksp = PETSc.KSP().create(comm=comm)
-        configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context)
+        configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context, ksp_type=self.default_ksp_type())
         ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (below)
         with self.timers.stage("setup"):
             ksp.setUp()
@@ -220,6 +220,18 @@ class Stepper:
         if getattr(self, "_pc_context", None) is None:
             self._pc_context = _default_pc(self.pc_precision)
         return self._pc_context
+
+    def default_ksp_type(self):
+        """gmres; fgmres when the default block-Jacobi PC is float32 (-ves_pc_precision single):
+        left-preconditioned GMRES with a float32 PC leaves the solution 1.3e-7 (relative) from
+        double's at any rtol, fgmres within 3e-14 at rtol 1e-8 in the same iterations (one
+        solve of the accuracy-cost pair, p = 12; docs/parallel.md)."""
+        from .precond import PC_DTYPES
+        prec = self.pc_precision if self.pc_precision is not None else self.default_pc_context().precision
+        if prec is None:
+            from petsc4py import PETSc
+            prec = PETSc.Options().getString("ves_pc_precision", "double")
+        return "fgmres" if PC_DTYPES.get(prec) == np.float32 else "gmres"
 
     def velocity(self):
         """Instantaneous velocity and tension (one solve with dt = 0: no implicit bending)."""
