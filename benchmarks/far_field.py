@@ -17,6 +17,11 @@ size with N^2 (direct) or N^1.2 (FMM), exceeds ``--max-seconds`` or would take t
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/far_field.py       # the run of docs/far_field.md
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/far_field.py       # direct on 2 threads (fmm stays serial)
     python benchmarks/far_field.py --sizes 8 16 --layer double --eps 1e-6
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/far_field.py --eps 1e-6 --sizes 8 16 32 64 128 256 512 1024
+
+Backends: direct, fmm and ewald (free space) at each ``--eps``.  A case predicted (far.py's
+cost model, scaled by measured / model of the previous size) above ``--max-seconds`` or past
+``--budget`` is not run: its column shows the model, marked "(model)".
 """
 import argparse
 import os
@@ -97,10 +102,10 @@ def main(argv=None):
             return dict(nw=nw, g=g)
         return dict(f_w=f_w, nw=nw, g=g)
 
-    backends = [("direct", None)] + [("fmm", e) for e in args.eps]
-    names = ["direct"] + [f"fmm eps={e:g}" for e in args.eps]
+    backends = [("direct", None)] + [("fmm", e) for e in args.eps] + [("ewald", e) for e in args.eps]
+    names = ["direct"] + [f"fmm eps={e:g}" for e in args.eps] + [f"ewald eps={e:g}" for e in args.eps]
     threads = far._stokes.max_threads()
-    used = {"direct": threads, "fmm": 1}            # the fmm3dpy wheel is serial
+    used = {"direct": threads, "fmm": 1, "ewald": threads}      # the fmm3dpy wheel is serial
     M, Q = 2 * args.p * (args.p + 1), 2 * args.q * (args.q + 1)
     print(f"# far field, {args.layer} layer, p = {args.p} (M = {M} targets/vesicle), "
           f"q = {args.q} ({Q} sources/vesicle), {threads} OpenMP threads, {os.cpu_count()} cpus")
@@ -111,6 +116,7 @@ def main(argv=None):
     wall = {n: [] for n in names}
     ideal = {n: [] for n in names}
     done = {n: [] for n in names}
+    model = {n: [] for n in names}
     skipped = []
     t_start = time.perf_counter()
     for nves in args.sizes:
@@ -119,15 +125,27 @@ def main(argv=None):
         row = f"{nves:>5} {trg.shape[0]:>8} {src.shape[0]:>8} "
         ref = None
         errs = []
+        own = nves * (trg.shape[0] // nves) * (src.shape[0] // nves)
         for (backend, eps), name in zip(backends, names):
+            # far.py's cost model (one thread for direct and ewald, as the CPU column), scaled by
+            # measured / model of the previous size of this backend
+            e_ = eps or far.DEFAULT_EPS
+            if backend == "ewald":
+                pred = far.predicted_ewald(np.concatenate([src, trg]), src.shape[0], trg.shape[0], own, e_, 1)[0]
+            else:
+                pred = far.predicted_seconds(src.shape[0], trg.shape[0], e_, 1)[0 if backend == "direct" else 1]
+            if backend == "direct":
+                pred *= (nves - 1) / nves
+            model[name].append((nves, pred))
             if done[name]:
-                pred = wall[name][-1] * (nves / done[name][-1]) ** (2.0 if backend == "direct" else 1.2)
-                if pred > args.max_seconds or time.perf_counter() - t_start + pred > args.budget:
-                    row += f"{'skipped (~%.0f s)' % pred:>26} "
+                ratio = ideal[name][-1] * used[backend] / dict(model[name])[done[name][-1]]
+                if pred * ratio > args.max_seconds or time.perf_counter() - t_start + pred * ratio > args.budget:
+                    row += f"{'~%.3g (model)' % pred:>26} "
                     skipped.append((nves, name, pred))
                     continue
             t0 = time.perf_counter()
-            ff = far.FarField(src, src_id, trg, trg_id, backend=backend, eps=eps or far.DEFAULT_EPS)
+            ff = far.FarField(src, src_id, trg, trg_id, backend=backend, eps=eps or far.DEFAULT_EPS,
+                              double_layer=args.layer != "single")
             t_setup = time.perf_counter() - t0
             best, best_cpu = np.inf, np.inf
             for _ in range(args.repeat):
@@ -145,7 +163,9 @@ def main(argv=None):
                 ref = u
             elif ref is not None:
                 errs.append(f"{np.abs(u - ref).max() / np.abs(ref).max():.1e}")
-        print(row + " " + " ".join(errs) + f"  (load {_loadavg()})", flush=True)
+        auto = far.FarField(src, src_id, trg, trg_id, backend="auto", eps=args.eps[0],
+                            double_layer=args.layer != "single").backend
+        print(row + " " + " ".join(errs) + f"  auto: {auto}  (load {_loadavg()})", flush=True)
 
     print("# fitted growth exponent t ~ N^a of the wall / ideal times (all sizes; sizes >= 32), cost constants")
     for (backend, eps), name in zip(backends, names):
@@ -159,16 +179,31 @@ def main(argv=None):
         if backend == "direct":
             c = ti[-1] * threads / (ns[-1] ** 2 * M * Q)
             line += f"{c * 1e9:.2f} ns CPU per pair (far.py model: {far.DIRECT_SECONDS_PER_PAIR * 1e9:.2f})"
-        else:
+        elif backend == "fmm":
             c = ti[-1] / (ns[-1] * (M + Q))
-            model = far.predicted_seconds(Q, M, eps, 1)[1] / (M + Q)
-            line += f"{c * 1e6:.0f} us CPU per point (far.py model: {model * 1e6:.0f})"
+            mod = far.predicted_seconds(Q, M, eps, 1)[1] / (M + Q)
+            line += f"{c * 1e6:.0f} us CPU per point (far.py model: {mod * 1e6:.0f})"
+        else:
+            mod = dict(model[name])[ns[-1]]
+            line += f"measured / model at N = {ns[-1]:.0f}: {ti[-1] * threads / mod:.2f}"
         print(line)
     # crossover: measured (log-linear interpolation between sizes where both ran), else power laws
     # fitted to the 3 largest sizes of each backend
     nd = np.array(done["direct"], float)
     for (backend, eps), name in list(zip(backends, names))[1:]:
         nf = np.array(done[name], float)
+        if backend == "ewald":
+            fm = f"fmm eps={eps:g}"
+            both = [n for n in done[name] if n in done[fm]]
+            for n in both:
+                print(f"# N = {n:.0f}: ewald {dict(zip(done[fm], ideal[fm]))[n] / dict(zip(done[name], ideal[name]))[n]:.1f}x "
+                      f"faster than fmm (ideal times, eps {eps:g})")
+            for n, tm in model[name]:
+                if n not in both:
+                    te = dict(zip(done[name], ideal[name])).get(n)
+                    tf = dict(zip(done[fm], ideal[fm])).get(n, dict(model[fm])[n])
+                    how = ("ewald measured, fmm " + ("measured" if n in done[fm] else "model")) if te else "models"
+                    print(f"# N = {n:.0f}: ewald {tf / (te or tm):.1f}x faster than fmm ({how}, eps {eps:g})")
         if nd.size < 2 or nf.size < 2:
             continue
         both = [n for n in nd if n in nf]
@@ -180,7 +215,7 @@ def main(argv=None):
             if r0 > 0 >= r1:
                 meas = np.exp(np.log(n0) + r0 / (r0 - r1) * (np.log(n1) - np.log(n0)))
         if both and wf[both[0]] <= wd[both[0]]:
-            print(f"# crossover direct ({threads} threads) / {name}: the FMM is already faster at N = {both[0]:.0f}")
+            print(f"# crossover direct ({threads} threads) / {name}: {backend} is already faster at N = {both[0]:.0f}")
         elif meas is not None:
             print(f"# crossover direct ({threads} threads) / {name}, measured wall times: N ~ {meas:.0f} vesicles")
         for kind, times in (("wall", wall), ("ideal", ideal)):
@@ -194,7 +229,17 @@ def main(argv=None):
     for eps in args.eps:
         nmodel = next((n for n in range(1, 100000)
                        if far.choose_backend(n * Q, n * M, "auto", eps) == "fmm"), None)
-        print(f"# far.py 'auto' at eps {eps:g} with {threads} threads switches to the FMM at N = {nmodel}")
+        print(f"# far.py 'auto' at eps {eps:g} with {threads} threads, without ewald, switches to the FMM at N = {nmodel}")
+        prev, switches = None, []
+        for n in sorted(set(np.geomspace(2, 2048, 45).astype(int))):
+            src, src_id, trg, trg_id = scene(n, args.p, args.q)[:4]
+            t_e = far.predicted_ewald(np.concatenate([src, trg]), src.shape[0], trg.shape[0],
+                                      n * M * Q, eps, double_layer=args.layer != "single")[0]
+            b = far.choose_backend(src.shape[0], trg.shape[0], "auto", eps, t_e)
+            if b != prev:
+                switches.append(f"{b} from N = {n}")
+            prev = b
+        print(f"# far.py 'auto' at eps {eps:g} with {threads} threads (this scene): " + ", ".join(switches))
     for nves, name, pred in skipped:
         print(f"# skipped N = {nves} {name}: predicted {pred:.0f} s (limits: --max-seconds "
               f"{args.max_seconds:g} per case, --budget {args.budget:g} in total)")

@@ -134,6 +134,34 @@ def test_pairs_variants(rng, cloud):
         stokes.stokeslet_sum_pairs(src, f, off, trg, np.array([[0, 5]]), np.zeros((1, 3)))
 
 
+def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud):
+    """Blocks of 9 targets against one vesicle (the near correction), vectorized across the
+    block: bit for bit the values of the pair kernels, a coincident point contributing 0."""
+    src, trg = cloud
+    sizes = np.array([50, 0, 120, 80, 150])
+    off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    f, nw, g = (rng.standard_normal(src.shape) for _ in range(3))
+    P, K = 40, 9
+    ves = rng.integers(0, sizes.size, P).astype(np.int64)
+    ves[0] = 0
+    blocks = np.ascontiguousarray(trg[rng.integers(0, trg.shape[0], P * K)].reshape(P, K, 3))
+    blocks[0, 4] = trg[7]                              # == src[11], in vesicle 0
+    pairs = np.ascontiguousarray(np.stack([np.arange(P * K), np.repeat(ves, K)], 1), dtype=np.int64)
+    for pair_kernel, block_kernel, dens in ((stokes.stokeslet_sum_pairs, stokes.stokeslet_sum_blocks, (f,)),
+                                            (stokes.stresslet_sum_pairs, stokes.stresslet_sum_blocks, (nw, g))):
+        ref = np.zeros((P * K, 3))
+        pair_kernel(src, *dens, off, blocks.reshape(-1, 3), pairs, ref)
+        out = np.zeros((P, K, 3))
+        block_kernel(src, *dens, off, blocks, ves, out)
+        assert np.array_equal(out.reshape(-1, 3), ref) and np.all(np.isfinite(out))
+        assert np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
+    with pytest.raises(ValueError, match="at most 16"):
+        stokes.stokeslet_sum_blocks(src, f, off, np.zeros((1, 17, 3)), np.zeros(1, dtype=np.int64),
+                                    np.zeros((1, 17, 3)))
+    with pytest.raises(ValueError, match="not a vesicle index"):
+        stokes.stokeslet_sum_blocks(src, f, off, blocks[:1], np.array([5]), np.zeros((1, K, 3)))
+
+
 # ----------------------------------------------------------------------------- near search
 def brute_near(trg, trg_id, src, src_id, h):
     d = np.sqrt(((trg[:, None, :] - src[None, :, :]) ** 2).sum(-1))

@@ -483,6 +483,17 @@ def test_estimate_follows_the_storage_formulas():
     assert big.t_iteration > 2 * small.t_iteration and big.t_setup > 4 * small.t_setup
 
 
+def test_estimate_of_a_time_step_and_the_memory_verdict():
+    from vesflow.costs import ITERATIONS_PER_SOLVE, estimate
+    from vesflow.scene import parse_scene
+    e = estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)))
+    assert e.solves_per_step == 3                       # -ves_adapt doubling: dt, then two dt/2
+    assert e.t_step == pytest.approx(3 * (e.t_setup + ITERATIONS_PER_SOLVE * e.t_iteration))
+    assert "per time step" in str(e) and "RAM: fits (needs" in str(e)
+    one = estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)), {"adapt": "none"})
+    assert one.solves_per_step == 1 and one.t_step == pytest.approx(e.t_step / 3)
+
+
 def test_check_prints_effects_costs_and_takes_overrides():
     r = vesflow(["check", "runs/shear_pair.toml", "-ves_p", "8"])
     assert r.returncode == 0, r.stderr

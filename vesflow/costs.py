@@ -14,8 +14,10 @@ upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) 
 
 Time per GMRES iteration: the membrane forces and transforms (per vesicle), the self
 operators (one GEMV each: they are streamed from memory), the far field (direct sum over the
-(N M) x ((N-1) Mq) pairs, or the FMM, as `-ves_far auto` would choose: vesflow.layerpot.far's
-own model), and the near correction (9 Mq kernel evaluations per near pair).  The constants
+(N M) x ((N-1) Mq) pairs, the FMM or the Ewald sum, as `-ves_far auto` would choose:
+vesflow.layerpot.far's own model), and the near correction (9 Mq kernel evaluations per near
+pair).  Time per step: the solves of one step (3 with -ves_adapt doubling), each its set-up and
+ITERATIONS_PER_SOLVE GMRES iterations.  The constants
 below were measured on the development machine (2 cores; docs/results.md); expect the
 right order of magnitude, not the digits.
 """
@@ -26,13 +28,24 @@ from dataclasses import dataclass
 import numpy as np
 
 BANDWIDTH = 2e10                 # bytes/s streamed by the batched self GEMV (measured 2-5e10)
-FORCE_S = (1.5e-4, 1.5e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
+FORCE_S = (8.0e-5, 1.0e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
 SELF_SETUP_S = (0.088, 4.0)      # seconds per vesicle to assemble S at p = 16, exponent in p
 PC_SETUP_S = (0.26, 4.0)         # seconds per vesicle to build and factor its 4C block at p = 16
 # (benchmarks/cost_model.py, CPU seconds, p = 6 / 8 / 12 / 16: S 0.0019 / 0.0050 / 0.026 / 0.097,
-# block + LU 0.007 / 0.012 / 0.057 / 0.26-0.36, forces 1.6 / 2.2 / 4.3 / 7.4e-4 per iteration;
+# block + LU 0.007 / 0.012 / 0.057 / 0.26-0.36, forces 1.6 / 2.2 / 4.3 / 7.4e-4 per iteration, then
+# 1.3 / 2.4 / 4.8e-4 at p = 8 / 12 / 16 with the derivatives synthesized from the coefficients;
 # before the second wave's transforms: S 0.0035 / - / 0.034 / 0.134, block + LU 0.011 / - / 0.086 / 0.29)
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
+# seconds per (near target or line point, source) kernel evaluation of one thread, the near
+# correction in blocks (stokes.*_sum_blocks): 4.24 s for 88189 pairs at p = 16, q = 32
+# (benchmarks/iteration.py --n 512, docs/far_field.md)
+NEAR_SECONDS_PER_EVAL = 2.5e-9
+# GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
+# doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
+# 139 per solve with its own preconditioner (section 4.4)
+ITERATIONS_PER_SOLVE = 8
+SOLVES_PER_STEP = {"doubling": 3, "none": 1}       # other schemes (SDC sweeps): counted as 1 solve per sweep pass
+NEAR_COUNT_MAX_POINTS = 1_200_000                 # count the near pairs when N M is below (~8 s CPU at the limit)
 
 
 @dataclass(frozen=True)
@@ -60,6 +73,15 @@ class Estimate:
     t_near: float
     t_setup: float               # per solve (every step: three with -ves_adapt doubling)
     t_pc: float                  # per preconditioner factorization (every -ves_pc_lag solves)
+    solves_per_step: int = 3
+    iterations_per_solve: int = ITERATIONS_PER_SOLVE
+    threads: int = 1
+
+    @property
+    def t_step(self):
+        """Seconds per time step: each solve's set-up and GMRES iterations (no preconditioner
+        factorization: it is reused over -ves_pc_lag solves)."""
+        return self.solves_per_step * (self.t_setup + self.iterations_per_solve * self.t_iteration)
 
     @property
     def t_iteration(self):
@@ -78,12 +100,30 @@ class Estimate:
             f"self {ms(self.t_self)}, far ({self.far_backend}) {ms(self.t_far)}, near {ms(self.t_near)} ({near})",
             f"         per solve set-up ~ {self.t_setup:.2f} s (self operators); preconditioner "
             f"factorization ~ {self.t_pc:.2f} s (every -ves_pc_lag solves)",
+            f"         per time step ~ {self.t_step:.4g} s: {self.solves_per_step} solve(s) x (set-up + "
+            f"{self.iterations_per_solve} GMRES iterations, an assumed typical count); {self.threads} thread(s), "
+            f"from the cost model (vesflow/costs.py)",
             f"memory   ~ {mib(self.memory)}: self operators {mib(self.mem_self)} "
             f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''}), block "
             f"preconditioner parts {mib(self.mem_pc_parts)} (N 25 C^2 x {_entry(self.pc_bytes)}) and LU "
             f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x {_entry(self.pc_bytes)}, up to 3: {mib(self.mem_pc_max)}), "
             f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
+            self._fits(),
         ])
+
+    def _fits(self):
+        """Whether the memory fits this machine's RAM (the minimum: one cached preconditioner)."""
+        least = self.memory - self.mem_pc_max + self.mem_pc
+        try:
+            import os
+            ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            return "machine  RAM unknown"
+        verdict = ("fits" if self.memory <= 0.8 * ram else
+                   "fits while at most one preconditioner set is cached (fixed dt)" if least <= 0.8 * ram else
+                   "does NOT fit")
+        return (f"machine  {ram / 2**30:.1f} GiB RAM: {verdict} (needs {least / 2**30:.1f} GiB with one cached "
+                f"preconditioner, {self.memory / 2**30:.1f} GiB with three; 80 % of the RAM usable)")
 
 
 def _entry(nbytes):
@@ -111,7 +151,7 @@ def _near_pairs(scene, p, q, near_factor):
 def estimate(scene, opts=None, near=True):
     """Estimate of a scene's costs (an Estimate; str() gives the lines `vesflow check` prints).
     opts: resolved options (vesflow.options.read_options) for q, the far-field backend and its
-    accuracy; near: count the near pairs of the initial configuration (N > 1, N M <= 2e5)."""
+    accuracy; near: count the near pairs of the initial configuration (N > 1, N M <= 1.2e6)."""
     from .layerpot import far as farmod
     p, N = scene.p, scene.n_vesicles
     o = dict(opts) if opts is not None else {}
@@ -128,7 +168,8 @@ def estimate(scene, opts=None, near=True):
     mem_sources = N * Mq * 7 * 8 if N > 1 else 0
     pairs = 0
     if N > 1 and near:
-        pairs = _near_pairs(scene, p, q, float(o.get("near_factor") or 1.0)) if N * M <= 200_000 else -1
+        pairs = (_near_pairs(scene, p, q, float(o.get("near_factor") or 1.0)) if N * M <= NEAR_COUNT_MAX_POINTS
+                 else -1)
     mem_near = max(pairs, 0) * (C + 3 * 8 + 9) * 8
     t_forces = N * (FORCE_S[0] + FORCE_S[1] * p ** 3)
     t_self = mem_self / BANDWIDTH
@@ -145,15 +186,15 @@ def estimate(scene, opts=None, near=True):
         else:
             backend = want
         t_far = {"fmm": t_fmm, "ewald": t_ewald}.get(backend, t_direct) or 0.0
-    per_pair = farmod.DIRECT_SECONDS_PER_PAIR / max(1, _threads())
-    t_near = max(pairs, 0) * NEAR_EVALS * Mq * per_pair * (2 if dl else 1)
+    t_near = max(pairs, 0) * NEAR_EVALS * Mq * NEAR_SECONDS_PER_EVAL / max(1, _threads()) * (2 if dl else 1)
     t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
     return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
                     mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_pc_parts=mem_pc_parts, self_bytes=self_bytes,
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
-                    t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc)
+                    t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
+                    solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=_threads())
 
 
 def _ewald_seconds(scene, p, nsrc, ntrg, own_pairs, eps):

@@ -24,19 +24,21 @@ def bending_force(geo, kappa):
     return mag[..., None] * geo.normal
 
 
-def tension_force(geo, sigma):
-    """f_s = 2 sigma H n + grad sigma; sigma is a grid field (N, npts) of this grid."""
-    return (2.0 * sigma * geo.H)[..., None] * geo.normal + geo.grad(sigma)
+def tension_force(geo, sigma, d=None):
+    """f_s = 2 sigma H n + grad sigma; sigma is a grid field (N, npts) of this grid (d: its
+    derivatives 't', 'p' if known, e.g. synthesized from its coefficients)."""
+    return (2.0 * sigma * geo.H)[..., None] * geo.normal + geo.grad(sigma, d)
 
 
-def linear_mean_curvature(geo, Y):
-    """H[Y] = n . (Laplace Y) / 2 with the frozen geometry of geo; Y is (N, npts, 3)."""
-    return 0.5 * np.einsum("...k,...k->...", geo.laplace_vector(Y), geo.normal)
+def linear_mean_curvature(geo, Y, dY=None):
+    """H[Y] = n . (Laplace Y) / 2 with the frozen geometry of geo; Y is (N, npts, 3) (dY: the
+    derivatives of Y as Geometry.derivatives gives them for (N, 3, npts), if known)."""
+    return 0.5 * np.einsum("...k,...k->...", geo.laplace_vector(Y, dY), geo.normal)
 
 
-def linearized_bending_force(geo, kappa, Y):
+def linearized_bending_force(geo, kappa, Y, dY=None):
     """B[Y] of (3.12): linear in Y, equal to f_b when Y is the position of geo."""
-    h = linear_mean_curvature(geo, Y)
+    h = linear_mean_curvature(geo, Y, dY)
     mag = -_per_vesicle(kappa, geo) * (geo.laplace(h) + 2.0 * h * (geo.H ** 2 - geo.K))
     return mag[..., None] * geo.normal
 

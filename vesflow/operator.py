@@ -72,16 +72,19 @@ class StepOperator:
     def coeffs_vec(self, v):
         return self.Tf.analysis(np.moveaxis(v, -1, -2))
 
-    def membrane_force(self, u, sigma, geo=None, kappa=None, lock=None):
+    def membrane_force(self, u, sigma, geo=None, kappa=None, lock=None, du=None):
         """Coefficients of dt B[u] + f_sigma(sigma) (the implicit part of the traction jump), plus
         the locking force of spheres -K P_{n >= 2}(u . n) n where self.lock (or lock, for the
-        vesicles of geo) is nonzero."""
+        vesicles of geo) is nonzero.  du: Tf.synth_all(u), if the caller has it (apply shares it
+        with the divergence)."""
         geo = self.geo if geo is None else geo
         kappa = self.params.kappa if kappa is None else kappa
         lock = self.lock if lock is None else np.asarray(lock, dtype=float)
-        ug = self.grid_vec(u)
-        sg = self.Tf.synth(sigma)
-        f = self.dt * forces.linearized_bending_force(geo, kappa, ug) + forces.tension_force(geo, sg)
+        du = self.Tf.synth_all(u) if du is None else du       # u and its derivatives, exact from the coefficients
+        ug = np.moveaxis(du[""], -2, -1)
+        sg, sg_t, sg_p = self.Tf.synth_first(sigma)
+        f = (self.dt * forces.linearized_bending_force(geo, kappa, ug, dY=du)
+             + forces.tension_force(geo, sg, d={"t": sg_t, "p": sg_p}))
         if np.any(lock):
             low = sph.index_tables(self.p)[0][:self.C] <= 1
             unc = self.Tf.analysis(np.einsum("...mk,...mk->...m", ug, geo.normal))
@@ -89,21 +92,25 @@ class StepOperator:
             f = f - (lock[:, None] * self.Tf.synth(unc))[..., None] * geo.normal
         return self.coeffs_vec(f)
 
-    def divergence(self, u, geo=None):
+    def divergence(self, u, geo=None, du=None):
         geo = self.geo if geo is None else geo
-        return self.Tf.analysis(geo.div(self.grid_vec(u)))
+        du = self.Tf.synth_all(u, values=False) if du is None else du
+        return self.Tf.analysis(geo.div(None, d=du))
 
     def apply(self, x):
-        """The operator on a NumPy vector of length N * 4C."""
+        """The operator on a NumPy vector of length N * 4C.  The derivatives of u on the force
+        grid are synthesized once from its coefficients (exact: u has degree p) and shared by
+        the bending force and the divergence."""
         u, s = self.split(x)
-        f = self.membrane_force(u, s)
+        du = self.Tf.synth_all(u)
+        f = self.membrane_force(u, s, du=du)
         g = -u if self.lp.want_double else None
         if self.coupling == "implicit":
             lpv = self.lp.apply(f, g)
         else:
             lpv = self.lp.self_part(f, g)
         r1 = self.params.alpha[:, None, None] * u - lpv
-        r2 = self.divergence(u)
+        r2 = self.divergence(u, du=du)
         r2[:, 0] += self.gauge * s[:, 0]
         return self.join(r1, r2)
 

@@ -80,12 +80,13 @@ class Geometry:
         d = self.derivatives(f) if d is None else d
         return d["t"][..., None] * self.Xup_t + d["p"][..., None] * self.Xup_p
 
-    def div(self, V):
-        """Surface divergence of vector fields (N, npts, 3) -> (N, npts)."""
-        V = np.moveaxis(np.asarray(V), -1, -2)                 # (N, 3, npts)
-        d = self._scalar_T.synth(self._scalar_T.analysis(V), "t")
-        e = self._scalar_T.synth(self._scalar_T.analysis(V), "p")
-        Vt, Vp = np.moveaxis(d, -2, -1), np.moveaxis(e, -2, -1)
+    def div(self, V, d=None):
+        """Surface divergence of vector fields (N, npts, 3) -> (N, npts) (d: the derivatives
+        't', 'p' of V as (N, 3, npts), if known; V is then not used)."""
+        if d is None:
+            c = self._scalar_T.analysis(np.moveaxis(np.asarray(V), -1, -2))   # (N, 3, K)
+            d = {"t": self._scalar_T.synth(c, "t"), "p": self._scalar_T.synth(c, "p")}
+        Vt, Vp = np.moveaxis(d["t"], -2, -1), np.moveaxis(d["p"], -2, -1)
         return np.einsum("...k,...k->...", Vt, self.Xup_t) + np.einsum("...k,...k->...", Vp, self.Xup_p)
 
     def laplace(self, f, d=None):
@@ -94,10 +95,11 @@ class Geometry:
         return (self.gtt * d["tt"] + 2.0 * self.gtp * d["tp"] + self.gpp * d["pp"]
                 - self.gamma_t * d["t"] - self.gamma_p * d["p"])
 
-    def laplace_vector(self, V):
-        """Componentwise Laplace-Beltrami of vector fields (N, npts, 3)."""
-        V = np.moveaxis(np.asarray(V), -1, -2)                 # (N, 3, npts)
-        d = self.derivatives(V)
+    def laplace_vector(self, V, d=None):
+        """Componentwise Laplace-Beltrami of vector fields (N, npts, 3) (d: derivatives of V as
+        derivatives() gives them for (N, 3, npts), if known; V is then not used)."""
+        if d is None:
+            d = self.derivatives(np.moveaxis(np.asarray(V), -1, -2))          # of (N, 3, npts)
         Lt = lambda a: a[:, None, :] if a.ndim == 2 else a
         out = (Lt(self.gtt) * d["tt"] + 2.0 * Lt(self.gtp) * d["tp"] + Lt(self.gpp) * d["pp"]
                - Lt(self.gamma_t) * d["t"] - Lt(self.gamma_p) * d["p"])

@@ -23,7 +23,7 @@ evaluated from their Taylor series (``a = (2 xi^3/sqrt(pi)) sum_{n>=1} (-1)^(n+1
 z^(2n-2)/n!``, ``b = -(16 xi^5/sqrt(pi)) sum_{m>=2} (-1)^m m(m-1)/((2m+1) m!) z^(2m-4)``).
 ``G^F(0) = 4 xi / sqrt(pi) I``, ``T^F(0) = 0``.
 
-:func:`real_space` sums, for every target ``t``, over all sources ``s`` and periodic images
+:class:`RealSpace` sums, for every target ``t``, over all sources ``s`` and periodic images
 ``n`` (periodic) or the sources (free space), LEAVING OUT the sources of the target's own
 vesicle at their given (unwrapped) position::
 
@@ -32,9 +32,11 @@ vesicle at their given (unwrapped) position::
 with ``G^F_rc = G^F`` for ``|r| < rc`` and ``G`` beyond (and the same for ``T``), so that the
 Fourier part over ALL sources plus this gives the Ewald sum without the own vesicle.  A
 coincident pair (``r = 0``) of different vesicles is skipped like the direct sum skips it,
-i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image,
-``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, counting
-sort) and an OpenMP ``prange`` over targets; every output row ACCUMULATES (``out += ...``).
+i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image
+(the image shift of each neighbour cell; per pair only along an axis of fewer than 5 cells),
+``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, sources
+and targets sorted by cell once per geometry) and an OpenMP ``prange`` over the cells holding
+targets; every output row ACCUMULATES (``out += ...``).
 """
 import numpy as np
 
@@ -309,118 +311,6 @@ cdef inline void _t_minus(double r0, double r1, double r2, double rr,
     a[2] += c * r2
 
 
-ctypedef struct _Box:
-    long n[3]
-    double L[3]
-    bint periodic
-    double rc2
-    double xi
-    const double* ys          # wrapped source positions in cell order
-    const long* sidx          # original (id-sorted) index of each cell-ordered source
-    const long* cstart        # cell c holds ys[cstart[c] .. cstart[c+1]]
-    const double* src         # given (unwrapped) positions, id-sorted
-    const long* src_id
-    const long* src_off
-    const double* f
-    const double* nw
-    const double* g
-    const double* tab         # tabulated coefficients (_table), tinv = TAB_N / rc
-    double tinv
-    const double* tab2        # own-vesicle smooth parts (_table_smooth), tinv2 = TAB2_N / rc^2
-    double tinv2
-
-
-cdef inline void _range(const _Box* b, long c, long k, long* lo, long* hi) noexcept nogil:
-    """Neighbour cells of cell c along an axis with k cells (cells of side >= rc / SUB):
-    periodic with >= 2 SUB + 1 cells c-SUB..c+SUB (wrapped later); fewer cells: each cell
-    once; free space: c-SUB..c+SUB clipped."""
-    if b.periodic and k < 2 * SUB + 1:
-        lo[0] = 0
-        hi[0] = k - 1
-    elif b.periodic:
-        lo[0] = c - SUB
-        hi[0] = c + SUB
-    else:
-        lo[0] = c - SUB if c >= SUB else 0
-        hi[0] = c + SUB if c + SUB < k else k - 1
-
-
-cdef void _target(const _Box* b, const double* x, const double* xw, const long* tc,
-                  long tid, long tv, double* out) noexcept nogil:
-    """out[0:3] += real-space sum at one target (x given, xw wrapped, tc its cell)."""
-    cdef double a[3]
-    cdef long lo[3]
-    cdef long hi[3]
-    cdef long d0, d1, d2, e0, e1, e2, cell
-    cdef Py_ssize_t j, s
-    cdef double r0, r1, r2, rr, q0, q1, q2
-    cdef double gf0 = 4.0 * b.xi / SQPI
-    cdef double v[4]
-    cdef bint do_sl = b.f != NULL, do_dl = b.g != NULL
-    a[0] = 0.0
-    a[1] = 0.0
-    a[2] = 0.0
-    for j in range(3):
-        _range(b, tc[j], b.n[j], &lo[j], &hi[j])
-    for d0 in range(lo[0], hi[0] + 1):
-        e0 = (d0 + b.n[0]) % b.n[0]
-        for d1 in range(lo[1], hi[1] + 1):
-            e1 = (d1 + b.n[1]) % b.n[1]
-            for d2 in range(lo[2], hi[2] + 1):
-                e2 = (d2 + b.n[2]) % b.n[2]
-                cell = (e0 * b.n[1] + e1) * b.n[2] + e2
-                for j in range(b.cstart[cell], b.cstart[cell + 1]):
-                    r0 = xw[0] - b.ys[3 * j]
-                    r1 = xw[1] - b.ys[3 * j + 1]
-                    r2 = xw[2] - b.ys[3 * j + 2]
-                    if b.periodic:
-                        r0 = r0 - b.L[0] * nearbyint(r0 / b.L[0])
-                        r1 = r1 - b.L[1] * nearbyint(r1 / b.L[1])
-                        r2 = r2 - b.L[2] * nearbyint(r2 / b.L[2])
-                    rr = r0 * r0 + r1 * r1 + r2 * r2
-                    if rr >= b.rc2:
-                        continue
-                    s = b.sidx[j]
-                    if tv >= 0 and b.src_id[s] == tid:
-                        # own vesicle at its given position: done in the own loop below
-                        q0 = x[0] - b.src[3 * s]
-                        q1 = x[1] - b.src[3 * s + 1]
-                        q2 = x[2] - b.src[3 * s + 2]
-                        if q0 * q0 + q1 * q1 + q2 * q2 < b.rc2:
-                            continue
-                    if rr == 0.0:
-                        if do_sl:
-                            a[0] -= gf0 * b.f[3 * s]
-                            a[1] -= gf0 * b.f[3 * s + 1]
-                            a[2] -= gf0 * b.f[3 * s + 2]
-                        continue
-                    if do_sl:
-                        _gr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.f + 3 * s, a)
-                    if do_dl:
-                        _tr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.nw + 3 * s, b.g + 3 * s, a)
-    # own vesicle at its given position: -G^F (|r| < rc) or -G (beyond)
-    if tv >= 0:
-        for s in range(b.src_off[tv], b.src_off[tv + 1]):
-            q0 = x[0] - b.src[3 * s]
-            q1 = x[1] - b.src[3 * s + 1]
-            q2 = x[2] - b.src[3 * s + 2]
-            rr = q0 * q0 + q1 * q1 + q2 * q2
-            if rr < b.rc2:
-                _tab2_eval(b.tab2, b.tinv2, rr, 0 if do_sl else 2, 4 if do_dl else 2, v)
-                if do_sl:
-                    _gf_apply(q0, q1, q2, v[0], v[1], b.f + 3 * s, a)
-                if do_dl:
-                    _tf_apply(q0, q1, q2, v[2], v[3], b.nw + 3 * s, b.g + 3 * s, a)
-            else:
-                if do_sl:
-                    _g_minus(q0, q1, q2, rr, b.f + 3 * s, a)
-                if do_dl:
-                    _t_minus(q0, q1, q2, rr, b.nw + 3 * s, b.g + 3 * s, a)
-    out[0] += a[0] * INV8PI
-    out[1] += a[1] * INV8PI
-    out[2] += a[2] * INV8PI
-
-
 def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
                 const double[:, ::1] g, double xi):
     """``G^F(r_k) f_k / (8 pi) + T^F(r_k):(g_k nw_k) / (8 pi)`` for each row k, (n, 3) (tests)."""
@@ -435,94 +325,6 @@ def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, 
         _tf_minus(r[k, 0], r[k, 1], r[k, 2], rr, xi, &nw[k, 0], &g[k, 0], a)
         o[k, 0] = -a[0] * INV8PI; o[k, 1] = -a[1] * INV8PI; o[k, 2] = -a[2] * INV8PI
     return out
-
-
-def real_space(const double[:, ::1] src, const double[:, ::1] f, const double[:, ::1] nw,
-               const double[:, ::1] g, const long[::1] src_id, const long[::1] src_off,
-               const double[:, ::1] trg, const long[::1] trg_id, const long[::1] trg_vi,
-               double xi, double rc, lo, length, bint periodic, double[:, ::1] out):
-    """out[t] += real-space Ewald sum at target t (module docstring), 1/(8 pi) included.
-
-    src (S, 3) SORTED by vesicle id, vesicle v's sources ``src_off[v] .. src_off[v+1]``;
-    f (S, 3) or (0, 3): single-layer density times weight; nw, g (S, 3) or (0, 3): double
-    layer; trg (T, 3), trg_id (T,), trg_vi (T,): index v of the target's own vesicle or -1.
-    lo, length (3,): the box (periodic: the period cell; free: a box holding every point).
-    """
-    cdef Py_ssize_t ns = src.shape[0], nt = trg.shape[0], i
-    cdef bint do_sl = f.shape[0] > 0, do_dl = g.shape[0] > 0
-    if do_sl and f.shape[0] != ns:
-        raise ValueError(f"f has {f.shape[0]} rows, src has {ns}")
-    if do_dl and (g.shape[0] != ns or nw.shape[0] != ns):
-        raise ValueError(f"nw, g have {nw.shape[0]}, {g.shape[0]} rows, src has {ns}")
-    if trg_id.shape[0] != nt or trg_vi.shape[0] != nt or out.shape[0] != nt:
-        raise ValueError("trg, trg_id, trg_vi and out must have the same length")
-    if src_id.shape[0] != ns:
-        raise ValueError("src and src_id must have the same length")
-    if nt == 0 or ns == 0 or not (do_sl or do_dl):
-        return
-    if not (rc > 0.0 and xi > 0.0):
-        raise ValueError(f"rc and xi must be positive, got {rc}, {xi}")
-    lo_np = np.asarray(lo, dtype=np.float64).reshape(3)
-    len_np = np.asarray(length, dtype=np.float64).reshape(3)
-    # cells: side >= rc / SUB, at most ~4 S + 64 of them
-    ncell_np = np.maximum(1, np.floor(len_np / (rc / SUB))).astype(np.int64)
-    while np.prod(ncell_np) > 4 * ns + 64:
-        j = int(np.argmax(ncell_np))
-        ncell_np[j] = max(1, ncell_np[j] // 2)
-    side_np = np.where(len_np > 0, len_np / ncell_np, 1.0)
-    src_np = np.asarray(src)
-    trg_np = np.asarray(trg)
-    if periodic:
-        if np.any(rc >= 0.5 * len_np):
-            raise ValueError(f"periodic real-space cutoff rc = {rc} must be below half the period {len_np}")
-        sw = lo_np + np.mod(src_np - lo_np, len_np)
-        tw = lo_np + np.mod(trg_np - lo_np, len_np)
-    else:
-        sw = src_np
-        tw = trg_np
-    scell = np.clip(np.floor((sw - lo_np) / side_np).astype(np.int64), 0, ncell_np - 1)
-    tcell = np.clip(np.floor((tw - lo_np) / side_np).astype(np.int64), 0, ncell_np - 1)
-    skey = (scell[:, 0] * ncell_np[1] + scell[:, 1]) * ncell_np[2] + scell[:, 2]
-    order = np.argsort(skey, kind="stable")
-    ncells = int(np.prod(ncell_np))
-    cstart_np = np.zeros(ncells + 1, dtype=np.int64)
-    cstart_np[1:] = np.cumsum(np.bincount(skey, minlength=ncells))
-    cdef double[:, ::1] ys = np.ascontiguousarray(sw[order])                 # wrapped, cell order
-    cdef long[::1] sidx = np.ascontiguousarray(order, dtype=np.int64)
-    cdef double[:, ::1] xw = np.ascontiguousarray(tw)
-    cdef long[:, ::1] tc = np.ascontiguousarray(tcell)
-    cdef long[::1] cstart = cstart_np
-    cdef Py_ssize_t t
-    cdef _Box box
-    box.n[0] = ncell_np[0]; box.n[1] = ncell_np[1]; box.n[2] = ncell_np[2]
-    box.L[0] = len_np[0]; box.L[1] = len_np[1]; box.L[2] = len_np[2]
-    box.periodic = periodic
-    box.rc2 = rc * rc
-    box.xi = xi
-    box.ys = &ys[0, 0]
-    box.sidx = &sidx[0]
-    box.cstart = &cstart[0]
-    box.src = &src[0, 0]
-    box.src_id = &src_id[0]
-    box.src_off = &src_off[0]
-    box.f = &f[0, 0] if do_sl else NULL
-    box.nw = &nw[0, 0] if do_dl else NULL
-    box.g = &g[0, 0] if do_dl else NULL
-    tab_np = np.ascontiguousarray(_table(xi, rc))
-    cdef const double[:, :, ::1] tab = tab_np
-    box.tab = &tab[0, 0, 0]
-    box.tinv = TAB_N / rc
-    tab2_np = np.ascontiguousarray(_table_smooth(xi, rc))
-    cdef const double[:, :, ::1] tab2 = tab2_np
-    box.tab2 = &tab2[0, 0, 0]
-    box.tinv2 = TAB2_N / (rc * rc)
-    cdef const double* ptrg = &trg[0, 0]
-    cdef const double* pxw = &xw[0, 0]
-    cdef const long* ptc = &tc[0, 0]
-    cdef double* po = &out[0, 0]
-    with nogil:
-        for t in prange(nt, schedule="dynamic", chunksize=64):
-            _target(&box, ptrg + 3 * t, pxw + 3 * t, ptc + 3 * t, trg_id[t], trg_vi[t], po + 3 * t)
 
 
 def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] psi,
@@ -589,3 +391,273 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
                     U[0, i, j, l] = u0 * ps
                     U[1, i, j, l] = u1 * ps
                     U[2, i, j, l] = u2 * ps
+
+
+# ---------------------------------------------------------------------------------------
+# The real-space sum with its cell structure built ONCE per geometry (a GMRES solve applies it
+# with new densities every iteration): sources and targets sorted by cell, sources stored
+# contiguously in cell order (wrapped and given positions, vesicle ids), the periodic image
+# shift of each neighbour cell computed per cell instead of a minimum image per pair.
+# ---------------------------------------------------------------------------------------
+ctypedef struct _Cells:
+    long n[3]
+    double L[3]
+    bint periodic
+    bint mi[3]                # periodic axis with fewer than 2 SUB + 1 cells: minimum image per pair
+    double rc2
+    double xi
+    const double* ys          # wrapped source positions, cell order
+    const double* yu          # given (unwrapped) source positions, cell order
+    const long* yid           # source vesicle ids, cell order
+    const long* cstart        # sources of cell c: cstart[c] .. cstart[c + 1]
+    const long* tstart        # targets (cell order) of cell c: tstart[c] .. tstart[c + 1]
+    const double* xw          # wrapped targets, cell order
+    const double* xu          # given targets, cell order
+    const long* tid
+    const long* tvi
+    const long* torder        # original index of each cell-ordered target
+    const double* src         # given sources, id-sorted (own-vesicle loop)
+    const long* src_off
+    const double* fc          # densities in cell order (NULL: layer absent)
+    const double* nwc
+    const double* gc
+    const double* f           # densities id-sorted
+    const double* nw
+    const double* g
+    const double* tab
+    double tinv
+    const double* tab2
+    double tinv2
+
+
+cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
+    """out[3 torder[t] + a] += real-space sum of every target t of cell c."""
+    cdef long c0 = c // (b.n[1] * b.n[2]), c1 = (c // b.n[2]) % b.n[1], c2 = c % b.n[2]
+    cdef long lo[3]
+    cdef long hi[3]
+    cdef long cc[3]
+    cdef long nb[125]
+    cdef double sh[375]
+    cdef long nnb = 0, d0, d1, d2, e0, e1, e2, t, j, s, m, tv, tidv
+    cdef double a[3]
+    cdef double v[4]
+    cdef double x0, x1, x2, r0, r1, r2, rr, q0, q1, q2, s0, s1, s2
+    cdef double gf0 = 4.0 * b.xi / SQPI
+    cdef bint do_sl = b.fc != NULL, do_dl = b.gc != NULL
+    cc[0] = c0
+    cc[1] = c1
+    cc[2] = c2
+    for j in range(3):
+        if b.periodic and b.mi[j]:
+            lo[j] = 0
+            hi[j] = b.n[j] - 1
+        elif b.periodic:
+            lo[j] = cc[j] - SUB
+            hi[j] = cc[j] + SUB
+        else:
+            lo[j] = cc[j] - SUB if cc[j] >= SUB else 0
+            hi[j] = cc[j] + SUB if cc[j] + SUB < b.n[j] else b.n[j] - 1
+    for d0 in range(lo[0], hi[0] + 1):
+        e0 = (d0 + b.n[0]) % b.n[0]
+        for d1 in range(lo[1], hi[1] + 1):
+            e1 = (d1 + b.n[1]) % b.n[1]
+            for d2 in range(lo[2], hi[2] + 1):
+                e2 = (d2 + b.n[2]) % b.n[2]
+                nb[nnb] = (e0 * b.n[1] + e1) * b.n[2] + e2
+                # image of the neighbour cell next to cell c: source + shift
+                sh[3 * nnb] = b.L[0] * ((d0 - e0) // b.n[0]) if b.periodic else 0.0
+                sh[3 * nnb + 1] = b.L[1] * ((d1 - e1) // b.n[1]) if b.periodic else 0.0
+                sh[3 * nnb + 2] = b.L[2] * ((d2 - e2) // b.n[2]) if b.periodic else 0.0
+                nnb += 1
+    for t in range(b.tstart[c], b.tstart[c + 1]):
+        a[0] = 0.0
+        a[1] = 0.0
+        a[2] = 0.0
+        x0 = b.xw[3 * t]
+        x1 = b.xw[3 * t + 1]
+        x2 = b.xw[3 * t + 2]
+        tidv = b.tid[t]
+        tv = b.tvi[t]
+        for m in range(nnb):
+            s0 = x0 - sh[3 * m]
+            s1 = x1 - sh[3 * m + 1]
+            s2 = x2 - sh[3 * m + 2]
+            for j in range(b.cstart[nb[m]], b.cstart[nb[m] + 1]):
+                r0 = s0 - b.ys[3 * j]
+                r1 = s1 - b.ys[3 * j + 1]
+                r2 = s2 - b.ys[3 * j + 2]
+                if b.mi[0]:
+                    r0 = r0 - b.L[0] * nearbyint(r0 / b.L[0])
+                if b.mi[1]:
+                    r1 = r1 - b.L[1] * nearbyint(r1 / b.L[1])
+                if b.mi[2]:
+                    r2 = r2 - b.L[2] * nearbyint(r2 / b.L[2])
+                rr = r0 * r0 + r1 * r1 + r2 * r2
+                if rr >= b.rc2:
+                    continue
+                if tv >= 0 and b.yid[j] == tidv:
+                    # own vesicle at its given position: done in the own loop below
+                    q0 = b.xu[3 * t] - b.yu[3 * j]
+                    q1 = b.xu[3 * t + 1] - b.yu[3 * j + 1]
+                    q2 = b.xu[3 * t + 2] - b.yu[3 * j + 2]
+                    if q0 * q0 + q1 * q1 + q2 * q2 < b.rc2:
+                        continue
+                if rr == 0.0:
+                    if do_sl:
+                        a[0] -= gf0 * b.fc[3 * j]
+                        a[1] -= gf0 * b.fc[3 * j + 1]
+                        a[2] -= gf0 * b.fc[3 * j + 2]
+                    continue
+                if do_sl:
+                    _gr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.fc + 3 * j, a)
+                if do_dl:
+                    _tr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.nwc + 3 * j, b.gc + 3 * j, a)
+        if tv >= 0:
+            x0 = b.xu[3 * t]
+            x1 = b.xu[3 * t + 1]
+            x2 = b.xu[3 * t + 2]
+            for s in range(b.src_off[tv], b.src_off[tv + 1]):
+                q0 = x0 - b.src[3 * s]
+                q1 = x1 - b.src[3 * s + 1]
+                q2 = x2 - b.src[3 * s + 2]
+                rr = q0 * q0 + q1 * q1 + q2 * q2
+                if rr < b.rc2:
+                    _tab2_eval(b.tab2, b.tinv2, rr, 0 if do_sl else 2, 4 if do_dl else 2, v)
+                    if do_sl:
+                        _gf_apply(q0, q1, q2, v[0], v[1], b.f + 3 * s, a)
+                    if do_dl:
+                        _tf_apply(q0, q1, q2, v[2], v[3], b.nw + 3 * s, b.g + 3 * s, a)
+                else:
+                    if do_sl:
+                        _g_minus(q0, q1, q2, rr, b.f + 3 * s, a)
+                    if do_dl:
+                        _t_minus(q0, q1, q2, rr, b.nw + 3 * s, b.g + 3 * s, a)
+        s = b.torder[t]
+        out[3 * s] += a[0] * INV8PI
+        out[3 * s + 1] += a[1] * INV8PI
+        out[3 * s + 2] += a[2] * INV8PI
+
+
+class RealSpace:
+    """The real-space sum (module docstring) for a fixed geometry: the cell lists, sorted
+    points and tables are built once here, :meth:`apply` takes the densities.
+
+    src (S, 3) SORTED by vesicle id, vesicle v's sources ``src_off[v] .. src_off[v+1]``,
+    src_id (S,); trg (T, 3), trg_id (T,), trg_vi (T,): index v of the target's own vesicle or
+    -1; lo, length (3,): the box (periodic: the period cell; free: a box holding every point).
+    """
+
+    def __init__(self, src, src_id, src_off, trg, trg_id, trg_vi, double xi, double rc, lo, length,
+                 bint periodic):
+        src_np = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
+        trg_np = np.ascontiguousarray(trg, dtype=np.float64).reshape(-1, 3)
+        ns, nt = src_np.shape[0], trg_np.shape[0]
+        if not (rc > 0.0 and xi > 0.0):
+            raise ValueError(f"rc and xi must be positive, got {rc}, {xi}")
+        lo_np = np.asarray(lo, dtype=np.float64).reshape(3)
+        len_np = np.asarray(length, dtype=np.float64).reshape(3)
+        ncell = np.maximum(1, np.floor(len_np / (rc / SUB))).astype(np.int64)
+        while np.prod(ncell) > 4 * ns + 64:
+            j = int(np.argmax(ncell))
+            ncell[j] = max(1, ncell[j] // 2)
+        side = np.where(len_np > 0, len_np / ncell, 1.0)
+        if periodic:
+            if np.any(rc >= 0.5 * len_np):
+                raise ValueError(f"periodic real-space cutoff rc = {rc} must be below half the period {len_np}")
+            sw = lo_np + np.mod(src_np - lo_np, len_np)
+            tw = lo_np + np.mod(trg_np - lo_np, len_np)
+        else:
+            sw, tw = src_np, trg_np
+        ncells = int(np.prod(ncell))
+
+        def key(pw):
+            c = np.clip(np.floor((pw - lo_np) / side).astype(np.int64), 0, ncell - 1)
+            return (c[:, 0] * ncell[1] + c[:, 1]) * ncell[2] + c[:, 2]
+
+        skey, tkey = key(sw), key(tw)
+        sorder = np.argsort(skey, kind="stable")
+        torder = np.argsort(tkey, kind="stable")
+        self.ncell, self.length, self.periodic, self.xi, self.rc = ncell, len_np, bool(periodic), xi, rc
+        self.ns, self.nt = ns, nt
+        self.sorder = sorder
+        self.cstart = np.zeros(ncells + 1, dtype=np.int64)
+        self.cstart[1:] = np.cumsum(np.bincount(skey, minlength=ncells))
+        self.tstart = np.zeros(ncells + 1, dtype=np.int64)
+        self.tstart[1:] = np.cumsum(np.bincount(tkey, minlength=ncells))
+        self.tcells = np.flatnonzero(np.diff(self.tstart)).astype(np.int64)   # cells holding targets
+        self.ys = np.ascontiguousarray(sw[sorder])
+        self.yu = np.ascontiguousarray(src_np[sorder])
+        self.yid = np.ascontiguousarray(np.asarray(src_id, dtype=np.int64)[sorder])
+        self.xw = np.ascontiguousarray(tw[torder])
+        self.xu = np.ascontiguousarray(trg_np[torder])
+        self.tid = np.ascontiguousarray(np.asarray(trg_id, dtype=np.int64)[torder])
+        self.tvi = np.ascontiguousarray(np.asarray(trg_vi, dtype=np.int64)[torder])
+        self.torder = np.ascontiguousarray(torder, dtype=np.int64)
+        self.src = src_np
+        self.src_off = np.ascontiguousarray(src_off, dtype=np.int64)
+        self.tab = np.ascontiguousarray(_table(xi, rc))
+        self.tab2 = np.ascontiguousarray(_table_smooth(xi, rc))
+
+    def apply(self, f, nw, g, out):
+        """out (T, 3) += the real-space sum, 1/(8 pi) included; f (S, 3) or (0, 3): single-layer
+        density times weight; nw, g (S, 3) or (0, 3): double layer; id-sorted as src."""
+        _apply_cells(self, np.ascontiguousarray(f, dtype=np.float64), np.ascontiguousarray(nw, dtype=np.float64),
+                     np.ascontiguousarray(g, dtype=np.float64), out)
+
+
+def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const double[:, ::1] g, double[:, ::1] out):
+    cdef Py_ssize_t ns = rs.ns, nt = rs.nt
+    cdef bint do_sl = f.shape[0] > 0, do_dl = g.shape[0] > 0
+    if do_sl and f.shape[0] != ns:
+        raise ValueError(f"f has {f.shape[0]} rows, src has {ns}")
+    if do_dl and (g.shape[0] != ns or nw.shape[0] != ns):
+        raise ValueError(f"nw, g have {nw.shape[0]}, {g.shape[0]} rows, src has {ns}")
+    if out.shape[0] != nt:
+        raise ValueError(f"out has {out.shape[0]} rows, trg has {nt}")
+    if nt == 0 or ns == 0 or not (do_sl or do_dl):
+        return
+    sorder = rs.sorder
+    cdef double[:, ::1] fc = np.ascontiguousarray(np.asarray(f)[sorder]) if do_sl else None
+    cdef double[:, ::1] nwc = np.ascontiguousarray(np.asarray(nw)[sorder]) if do_dl else None
+    cdef double[:, ::1] gc = np.ascontiguousarray(np.asarray(g)[sorder]) if do_dl else None
+    cdef double[:, ::1] ys = rs.ys, yu = rs.yu, xw = rs.xw, xu = rs.xu, src = rs.src
+    cdef long[::1] yid = rs.yid, cstart = rs.cstart, tstart = rs.tstart, tid = rs.tid, tvi = rs.tvi
+    cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells
+    cdef double[:, :, ::1] tab = rs.tab, tab2 = rs.tab2
+    cdef _Cells b
+    cdef int j
+    for j in range(3):
+        b.n[j] = rs.ncell[j]
+        b.L[j] = rs.length[j]
+        b.mi[j] = rs.periodic and rs.ncell[j] < 2 * SUB + 1
+    b.periodic = rs.periodic
+    b.rc2 = rs.rc * rs.rc
+    b.xi = rs.xi
+    b.ys = &ys[0, 0]
+    b.yu = &yu[0, 0]
+    b.yid = &yid[0]
+    b.cstart = &cstart[0]
+    b.tstart = &tstart[0]
+    b.xw = &xw[0, 0]
+    b.xu = &xu[0, 0]
+    b.tid = &tid[0]
+    b.tvi = &tvi[0]
+    b.torder = &torder[0]
+    b.src = &src[0, 0]
+    b.src_off = &src_off[0]
+    b.fc = &fc[0, 0] if do_sl else NULL
+    b.nwc = &nwc[0, 0] if do_dl else NULL
+    b.gc = &gc[0, 0] if do_dl else NULL
+    b.f = &f[0, 0] if do_sl else NULL
+    b.nw = &nw[0, 0] if do_dl else NULL
+    b.g = &g[0, 0] if do_dl else NULL
+    b.tab = &tab[0, 0, 0]
+    b.tinv = TAB_N / rs.rc
+    b.tab2 = &tab2[0, 0, 0]
+    b.tinv2 = TAB2_N / (rs.rc * rs.rc)
+    cdef double* po = &out[0, 0]
+    cdef const long* pc = &tcells[0]
+    cdef Py_ssize_t k, nc = tcells.shape[0]
+    with nogil:
+        for k in prange(nc, schedule="dynamic", chunksize=8):
+            _cell_targets(&b, pc[k], po)

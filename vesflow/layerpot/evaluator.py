@@ -108,7 +108,8 @@ class LayerPotentials:
                 self.near = self._near_setup(self.trg, self.trg_id)
             with _timed(timers, "far_setup"):
                 self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps,
-                                    period=s.period, **self._far_whole_problem())
+                                    period=s.period, double_layer=self.want_double,
+                                    **self._far_whole_problem())
         self.n_near_pairs_total = (self.n_near_pairs if part is None else int(part.sum(self.n_near_pairs)))
 
     def _far_whole_problem(self):
@@ -170,6 +171,11 @@ class LayerPotentials:
         info["line_points"] = np.ascontiguousarray(pts.reshape(-1, 3))
         info["line_pairs"] = np.ascontiguousarray(
             np.stack([np.arange(P * nearmod.L_POINTS), np.repeat(info["pairs"][:, 1], nearmod.L_POINTS)], axis=1))
+        # each pair's target and its line points: one block of 1 + L_POINTS targets against the
+        # pair's vesicle (stokes.*_sum_blocks, vectorized across the block)
+        info["blocks"] = np.ascontiguousarray(np.concatenate(
+            [info["tpos"][:, None], pts.reshape(P, nearmod.L_POINTS, 3)], axis=1))
+        info["block_ves"] = np.ascontiguousarray(info["pairs"][:, 1], dtype=np.int64)
         info["weights"] = nearmod.interpolation_weights(oriented, h[inside_zone])
         info["basis"] = sph.evaluate(np.eye(sph.n_coeffs(self.p)), self.p, proj.theta, proj.phi).T  # (P, C)
         return info
@@ -233,21 +239,20 @@ class LayerPotentials:
         if info is None or "projection" not in info:
             return vals
         pairs = info["pairs"]
-        smooth = np.zeros((len(pairs), 3))
-        stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, info["tpos"], info["tpairs"], smooth)
-        line = np.zeros((len(info["line_points"]), 3))
-        stokes.stokeslet_sum_pairs(self.src, fw, self.src_off, info["line_points"], info["line_pairs"], line)
+        # smooth rule of each pair's vesicle at its target (column 0) and line points (1 ..)
+        blk = np.zeros(info["blocks"].shape)
+        stokes.stokeslet_sum_blocks(self.src, fw, self.src_off, info["blocks"], info["block_ves"], blk)
         if gq is not None:
-            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["tpos"], info["tpairs"], smooth)
-            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["line_points"],
-                                       info["line_pairs"], line)
+            stokes.stresslet_sum_blocks(self.src, self.src_nw, gq, self.src_off, info["blocks"], info["block_ves"],
+                                        blk)
+        smooth = blk[:, 0]
+        line = blk[:, 1:]
         v = pairs[:, 1]
         # on-surface value at the projection: the self potential of vesicle v, one-sided for D
         u0 = np.einsum("pc,pkc->pk", info["basis"], u_self[v])
         if gq is not None:
             g0 = np.einsum("pc,pkc->pk", info["basis"], g[v]) * (1.0 - self.lam_all[v])[:, None]
             u0 -= 0.5 * info["side"][:, None] * g0
-        line = line.reshape(len(pairs), nearmod.L_POINTS, 3)
         w = info["weights"]
         nearval = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line)
         np.add.at(vals, pairs[:, 0], nearval - smooth)
@@ -262,7 +267,7 @@ class LayerPotentials:
         tid = np.full(len(targets), -1, dtype=np.int64)
         fw, gq = self._densities(f, g)
         far = FarField(self.src, self.src_id, targets, tid, backend=self.settings.backend, eps=self.settings.fmm_eps,
-                       period=self.settings.period)
+                       period=self.settings.period, double_layer=gq is not None)
         vals = far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
         info = self._near_setup(targets, tid)
         return self._near_correct(vals, info, targets, fw, gq, self.self_part(f, g), g)

@@ -66,15 +66,22 @@ NUFFT_LIBS = ("finufft", "ducc0")
 C_REAL = 0.0
 C_FOURIER = 0.0
 C_WINDOW = 2.0
-# NUFFT accuracy requested, relative to tol
-NUFFT_EPS_FACTOR = 0.1
+PREFACTOR_DOUBLE = 1.5
+PREFACTOR_SINGLE = 0.5
+# NUFFT accuracy requested, relative to tol (1.0 and 0.1 gave the same errors on the scene of
+# benchmarks/far_field.py at 1e-4 .. 1e-10: the NUFFT is not the limiting part)
+NUFFT_EPS_FACTOR = 0.5
 # cost model of the parameter choice, CPU seconds of one thread, measured with
 # benchmarks/ewald.py --calibrate (docs/far_field.md): real space per (target, source) pair
 # inside the cutoff (single layer; about the same again for the double layer) and per
 # own-vesicle pair; NUFFT spreading per point per transform per kernel width cubed; FFT per
 # fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
 # mode per component
-COST = {"pair": 2.2e-8, "own_pair": 5.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 1.0e-8}
+# Re-measured after the cell-ordered real space (periodic N = 512, p = 16, tol 1e-6, one thread,
+# CPU, load ~10: real 4.21 s for 1.52e8 model pairs (2.13e8 counted: the points lie on surfaces),
+# own 1.8 s for 5.9e8 pairs, k-space 0.12 s for 7.5e6 modes x 6; the NUFFT terms kept: type 1 +
+# type 2 measured 5.9 s against 6.7 s modelled; docs/far_field.md)
+COST = {"pair": 2.8e-8, "own_pair": 3.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 3.0e-9}
 # memory of the Fourier grids of one pass (complex, one array per source component): a
 # parameter choice keeps the double layer's pass (6 components) within it; single and double
 # layer share one pass (9 components) when that fits too
@@ -134,13 +141,17 @@ def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
     return t / max(1, threads)
 
 
-def _exponents(lt):
-    """``(xi rc, k_max / (2 xi))`` for ln(1/tol) = lt: ``z^2 = lt + C + 1.5 ln(lt + C)``, the
-    estimate ``exp(-z^2)`` with the stresslet's prefactor ``~ z^3`` (its real-space kernel at rc
-    over T is ``~ (xi rc)^3 exp(-xi^2 rc^2)``; its Fourier sum carries one more power of k)."""
+def _exponents(lt, double_layer=True):
+    """``(xi rc, k_max / (2 xi))`` for ln(1/tol) = lt: ``z^2 = lt + C + P ln(lt + C)``, the
+    estimate ``exp(-z^2)`` times a prefactor ``~ z^(2P)``: the stresslet's ``P = 1.5`` (its
+    real-space kernel at rc over T is ``~ (xi rc)^3 exp(-xi^2 rc^2)``; its Fourier sum carries one
+    more power of k), the Stokeslet's ``P = 0.5`` when the double layer is absent (measured on
+    the scene of benchmarks/far_field.py: error 0.1-0.3 tol with 0.5, 0.7-0.8 tol with 0,
+    0.006-0.03 tol with 1.5; docs/far_field.md)."""
+    pref = PREFACTOR_DOUBLE if double_layer else PREFACTOR_SINGLE
     zr = lt + C_REAL
     zf = lt + C_FOURIER
-    return math.sqrt(zr + 1.5 * math.log(zr)), math.sqrt(zf + 1.5 * math.log(zf))
+    return math.sqrt(zr + pref * math.log(zr)), math.sqrt(zf + pref * math.log(zf))
 
 
 def _modes(period, kmax):
@@ -159,7 +170,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     nsrc = n // 2 if nsrc is None else nsrc
     ntrg = n - n // 2 if ntrg is None else ntrg
     lt = math.log(1.0 / tol)
-    a_real, a_four = _exponents(lt)
+    a_real, a_four = _exponents(lt, ncomp > 3)
     nufft_eps = max(tol * NUFFT_EPS_FACTOR, 1e-14)
     if period is not None:
         L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
@@ -398,6 +409,7 @@ class EwaldSum:
                                                 p.nufft_eps, self.threads))
         self._psi = kernel_psi(p, self.threads)
         self._k = _kvectors(p)
+        self._real = None            # cell lists of the real-space part, built at the first evaluation
 
     def _sorted(self, a):
         return a if self._perm is None else np.ascontiguousarray(a[self._perm])
@@ -410,10 +422,11 @@ class EwaldSum:
         f = empty if f_w is None else self._sorted(np.ascontiguousarray(f_w, dtype=np.float64))
         n_ = empty if g is None else self._sorted(np.ascontiguousarray(nw, dtype=np.float64))
         g_ = empty if g is None else self._sorted(np.ascontiguousarray(g, dtype=np.float64))
-        box = p.period if p.periodic else tuple(np.asarray(p.box) * (1 + 1e-12) + 1e-300)
-        _kernels.real_space(self._src_sorted, f, n_, g_, self._sid_sorted, self._src_off,
-                            self.trg, self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box,
-                            bool(p.periodic), out)
+        if self._real is None:
+            box = p.period if p.periodic else tuple(np.asarray(p.box) * (1 + 1e-12) + 1e-300)
+            self._real = _kernels.RealSpace(self._src_sorted, self._sid_sorted, self._src_off, self.trg,
+                                            self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box, bool(p.periodic))
+        self._real.apply(f, n_, g_, out)
         return out
 
     def fourier(self, f_w=None, nw=None, g=None):

@@ -70,7 +70,9 @@ DEFAULT_EPS = 1e-8
 # Second wave: the vectorized kernels (pairsum.h, AVX-512 clone) 1.37-1.47 ns CPU per pair for two
 # vesicles at p = 6..16 (benchmarks/cost_model.py).
 DIRECT_SECONDS_PER_PAIR = 1.4e-9
-FMM_SECONDS_PER_POINT = {1e-6: 1.0e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
+# 1e-6 re-measured: 119 us per point at N = 64, 165 us at N = 128 (the per-point cost grows like N^0.26;
+# benchmarks/far_field.py --eps 1e-6, load ~9, docs/far_field.md): the larger kept
+FMM_SECONDS_PER_POINT = {1e-6: 1.65e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
 # targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
 # moved onto it (FMM backend only)
 SNAP_TOL = 1e-10
@@ -99,14 +101,16 @@ def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
     return t_direct, (float(nsrc) + float(ntrg)) * per_point
 
 
-def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None):
+def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None,
+                    double_layer=False):
     """``(seconds, params)`` of the Ewald sum (single layer) over ``points`` (sources and
     targets, or any points spanning their box), ``own_pairs`` target-source pairs of the
     same vesicle (the O(N M Q) subtraction); the parameters from
-    :func:`vesflow.layerpot.ewald.choose_params`."""
+    :func:`vesflow.layerpot.ewald.choose_params`; ``double_layer``: parameters accurate for
+    the stresslet too (the time is still that of the single layer)."""
     from . import ewald
     threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
-    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads)
+    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads, 9 if double_layer else 3)
     return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs), p
 
 
@@ -167,7 +171,9 @@ def _ids(name, a, n):
 class FarField:
     """Far field of a fixed geometry: sources ``src`` (S, 3) grouped by ``src_id`` (S,),
     targets ``trg`` (T, 3) with ``trg_id`` (T,).  Densities are given per call, so one
-    object serves every GMRES iteration of a time step.
+    object serves every GMRES iteration of a time step.  ``double_layer``: the double layer
+    will be evaluated too (the Ewald parameters then meet ``eps`` for the stresslet; False
+    allows a cheaper choice for the single layer alone).
 
     Attributes: ``backend`` (resolved), ``eps``, ``ids`` (the distinct source vesicle ids,
     sorted), ``src_off`` (offsets of each vesicle's sources in the id-sorted order),
@@ -175,11 +181,12 @@ class FarField:
     """
 
     def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None,
-                 whole_targets=None, whole_own_pairs=None, spread=None):
+                 whole_targets=None, whole_own_pairs=None, spread=None, double_layer=True):
         """whole_targets, whole_own_pairs: the targets of every MPI rank and their own-vesicle
         pairs, for choosing the backend and Ewald parameters as one process would (the
         vesicle partition, vesflow.parallel; trg are this rank's).  spread = (partition,
-        indices of this rank's sources): the Ewald sum spreads only those (EwaldSum)."""
+        indices of this rank's sources): the Ewald sum spreads only those (EwaldSum).
+        double_layer: the Ewald parameters are made accurate for the stresslet too."""
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
@@ -195,7 +202,8 @@ class FarField:
         if backend == "auto" and period is None and ns and nt_whole and _have_ewald():
             own = _own_pairs(self.src_id, self.trg_id) if whole_own_pairs is None else int(whole_own_pairs)
             try:
-                t_ewald, params = predicted_ewald(np.concatenate([self.src, whole]), ns, nt_whole, own, self.eps)
+                t_ewald, params = predicted_ewald(np.concatenate([self.src, whole]), ns, nt_whole, own, self.eps,
+                                                  double_layer=double_layer)
             except SceneError:               # no grid fits the memory: not a candidate
                 t_ewald, params = None, None
         self.backend = choose_backend(ns, nt_whole, backend, self.eps, t_ewald, periodic=period is not None)
@@ -207,9 +215,9 @@ class FarField:
             from .ewald import EwaldSum, choose_params
             if params is None and whole_targets is not None:
                 params = choose_params(self.eps, np.concatenate([self.src, whole]), period, ns, nt_whole,
-                                       _stokes.max_threads(), 3)
+                                       _stokes.max_threads(), 9 if double_layer else 3)
             self.ewald = EwaldSum(self.src, self.src_id, self.trg, self.trg_id, tol=self.eps, period=period,
-                                  params=params, spread=spread)
+                                  params=params, spread=spread, double_layer=double_layer)
 
     # ------------------------------------------------------------------ set-up (FMM)
     def _setup_fmm(self):
@@ -321,7 +329,7 @@ def far_single_layer(src, f_w, src_id, trg, trg_id, backend="auto", eps=DEFAULT_
     ``u_t = sum_{src_id[s] != trg_id[t]} (1/(8 pi)) (f_s/r + r (r.f_s)/r^3)``, r = x_t - y_s,
     ``f_w`` = traction times quadrature weight.  See :class:`FarField` for the backends.
     """
-    return FarField(src, src_id, trg, trg_id, backend, eps).evaluate(f_w=f_w)
+    return FarField(src, src_id, trg, trg_id, backend, eps, double_layer=False).evaluate(f_w=f_w)
 
 
 def far_double_layer(src, nw, g, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS):
