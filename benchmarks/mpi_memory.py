@@ -49,10 +49,10 @@ def fit(measured, p, lu_kept):
     return base, owned, per_ves_1 - owned
 
 
-def ewald_grid_bytes(n, p, volume_fraction=0.35, tol=1e-8):
+def ewald_grid_bytes(n, p, L, tol=1e-8):
+    """The mode grid vesflow would choose for n vesicles in the periodic cube of side L."""
     from vesflow.layerpot.ewald import choose_params
     import numpy as np
-    L = (n * 4.0 / 3.0 * math.pi / volume_fraction) ** (1.0 / 3.0)
     Mq, Mp = 2 * (2 * p) * (2 * p + 1), 2 * p * (p + 1)
     prm = choose_params(tol, np.zeros((2, 3)), L, n * Mq, n * Mp, 1, 3)
     modes = float(np.prod(prm.modes))
@@ -66,6 +66,8 @@ def main(argv=None):
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 16, 64])
     ap.add_argument("--measured", type=float, nargs=3, default=[0.49, 3.25, 1.74],
                     help="peak RSS (GB) of mpi_scaling.py at p = 16: 8 vesicles 1 rank, 64 on 1, 64 on 2")
+    ap.add_argument("--period", type=float, default=17.0, help="side of the periodic cube (runs/taylor_green_1408.toml: "
+                    "1408 cells of radius 0.766, v = 0.65, volume fraction 0.35)")
     ap.add_argument("--fit-gb", type=float, default=24.0, help="memory per rank to fit in (GB)")
     ap.add_argument("--lu-kept", type=int, default=2, help="LU factors per vesicle kept (precond.MAX_DT_FACTORS 3; "
                     "fixed or slowly varying dt: 1-2)")
@@ -78,8 +80,8 @@ def main(argv=None):
     print(f"measured (mpi_scaling.py, 1 LU kept): base {base / GB:.2f} GB, per owned vesicle {owned / 2**20:.1f} MB, "
           f"per replicated vesicle {repl / 2**20:.2f} MB")
     extra_lu = (args.lu_kept - 1) * dense_bytes(p)[2]
-    prm, L, grid = ewald_grid_bytes(N, p)
-    print(f"Taylor-Green box L = {L:.1f} (volume fraction 0.35): Ewald modes {prm.modes}, grid ~{grid / GB:.2f} GB per rank")
+    prm, L, grid = ewald_grid_bytes(N, p, args.period)
+    print(f"Taylor-Green box L = {L:.1f}: Ewald modes {prm.modes} at tol 1e-8, grid ~{grid / GB:.2f} GB per rank")
     print(f"{'ranks':>6} {'owned':>6} {'per rank GB':>12} {'node total GB (all ranks)':>26}")
     for R in args.ranks:
         n_own = math.ceil(N / R)
