@@ -23,7 +23,8 @@ step doubling, the steps after).
 
 Precision (-ves_pc_precision): single keeps the parts and the LU factors in float32 (factored by
 scipy's lu_factor on float32 blocks, applied with float32 solves): half the memory; the
-preconditioner only has to be close to the operator (docs/parallel.md).
+step's KSP is then fgmres (`Stepper.default_ksp_type`), whose residual is the true one, so the
+solution keeps double's accuracy (docs/parallel.md).
 """
 from __future__ import annotations
 

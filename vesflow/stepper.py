@@ -227,11 +227,11 @@ class Stepper:
         double's at any rtol, fgmres within 3e-14 at rtol 1e-8 in the same iterations (one
         solve of the accuracy-cost pair, p = 12; docs/parallel.md)."""
         from .precond import PC_DTYPES
-        prec = self.pc_precision if self.pc_precision is not None else self.default_pc_context().precision
-        if prec is None:
-            from petsc4py import PETSc
-            prec = PETSc.Options().getString("ves_pc_precision", "double")
-        return "fgmres" if PC_DTYPES.get(prec) == np.float32 else "gmres"
+        if self.pc_precision is not None:
+            dtype = PC_DTYPES[self.pc_precision]
+        else:                                # a context of another kind (tests): its own precision, or double
+            dtype = getattr(self.default_pc_context(), "dtype", np.float64)
+        return "fgmres" if dtype == np.float32 else "gmres"
 
     def velocity(self):
         """Instantaneous velocity and tension (one solve with dt = 0: no implicit bending)."""
