@@ -12,6 +12,13 @@ vesicles on 1 rank and 64 on 2 (--measured, GB) fixes the base and the two slope
 The Ewald grid (periodic Taylor-Green: the only far field there) is replicated per rank: the
 mode grid of the parameters vesflow would choose (3 complex components) plus the NUFFT's
 upsampled grid, taken as twice the mode grid (a model, not measured at this size).
+
+The memory options -ves_self_precision single and -ves_pc_precision single store those dense
+arrays in float32: the owned part falls by half their bytes (counted from the shapes: 15.8 MB
+per vesicle with both at p = 16 and one LU; measured at 8 vesicles: peak RSS 0.50 -> 0.38 GB,
+15 MB per vesicle).  The last table gives the fewest ranks of 24 GB each for every combination.
+
+    .venv/bin/python benchmarks/mpi_memory.py --fit-gb 24
 """
 import argparse
 import math
@@ -23,12 +30,13 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 GB = 2.0 ** 30
 
 
-def dense_bytes(p, double_layer=False, lu_kept=1):
-    """Per-vesicle bytes of the dense blocks: self operator(s), PC parts, LU factors."""
+def dense_bytes(p, double_layer=False, lu_kept=1, self_bytes=8, pc_bytes=8):
+    """Per-vesicle bytes of the dense blocks: self operator(s), PC parts, LU factors
+    (self_bytes / pc_bytes: 4 with -ves_self_precision / -ves_pc_precision single)."""
     C = (p + 1) ** 2 - 1
-    self_ops = (2 if double_layer else 1) * (3 * C) ** 2 * 8
-    parts = ((4 * C) ** 2 + (3 * C) ** 2) * 8
-    lu = lu_kept * (4 * C) ** 2 * 8
+    self_ops = (2 if double_layer else 1) * (3 * C) ** 2 * self_bytes
+    parts = ((4 * C) ** 2 + (3 * C) ** 2) * pc_bytes
+    lu = lu_kept * (4 * C) ** 2 * pc_bytes
     return self_ops, parts, lu
 
 
@@ -41,10 +49,10 @@ def fit(measured, p, lu_kept):
     return base, owned, per_ves_1 - owned
 
 
-def ewald_grid_bytes(n, p, volume_fraction=0.35, tol=1e-8):
+def ewald_grid_bytes(n, p, L, tol=1e-8):
+    """The mode grid vesflow would choose for n vesicles in the periodic cube of side L."""
     from vesflow.layerpot.ewald import choose_params
     import numpy as np
-    L = (n * 4.0 / 3.0 * math.pi / volume_fraction) ** (1.0 / 3.0)
     Mq, Mp = 2 * (2 * p) * (2 * p + 1), 2 * p * (p + 1)
     prm = choose_params(tol, np.zeros((2, 3)), L, n * Mq, n * Mp, 1, 3)
     modes = float(np.prod(prm.modes))
@@ -58,6 +66,9 @@ def main(argv=None):
     ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 16, 64])
     ap.add_argument("--measured", type=float, nargs=3, default=[0.49, 3.25, 1.74],
                     help="peak RSS (GB) of mpi_scaling.py at p = 16: 8 vesicles 1 rank, 64 on 1, 64 on 2")
+    ap.add_argument("--period", type=float, default=17.0, help="side of the periodic cube (runs/taylor_green_1408.toml: "
+                    "1408 cells of radius 0.766, v = 0.65, volume fraction 0.35)")
+    ap.add_argument("--fit-gb", type=float, default=24.0, help="memory per rank to fit in (GB)")
     ap.add_argument("--lu-kept", type=int, default=2, help="LU factors per vesicle kept (precond.MAX_DT_FACTORS 3; "
                     "fixed or slowly varying dt: 1-2)")
     args = ap.parse_args(argv)
@@ -69,8 +80,8 @@ def main(argv=None):
     print(f"measured (mpi_scaling.py, 1 LU kept): base {base / GB:.2f} GB, per owned vesicle {owned / 2**20:.1f} MB, "
           f"per replicated vesicle {repl / 2**20:.2f} MB")
     extra_lu = (args.lu_kept - 1) * dense_bytes(p)[2]
-    prm, L, grid = ewald_grid_bytes(N, p)
-    print(f"Taylor-Green box L = {L:.1f} (volume fraction 0.35): Ewald modes {prm.modes}, grid ~{grid / GB:.2f} GB per rank")
+    prm, L, grid = ewald_grid_bytes(N, p, args.period)
+    print(f"Taylor-Green box L = {L:.1f}: Ewald modes {prm.modes} at tol 1e-8, grid ~{grid / GB:.2f} GB per rank")
     print(f"{'ranks':>6} {'owned':>6} {'per rank GB':>12} {'node total GB (all ranks)':>26}")
     for R in args.ranks:
         n_own = math.ceil(N / R)
@@ -90,6 +101,20 @@ def main(argv=None):
         print(f"  {name:45s} {per_ves / 2**20:7.1f} MB/vesicle, 1408 vesicles {N * per_ves / GB:6.1f} GB; "
               f"one rank {tot / GB:6.1f} GB, 16 ranks on a node "
               f"{(N * per_ves + 16 * (base + N * repl + grid)) / GB:6.1f} GB")
+    # the options of vesflow: owned bytes fall by what the float32 arrays save (from their shapes)
+    print(f"vesflow's memory options: memory per rank (model) and the fewest ranks of {args.fit_gb:g} GB each")
+    print(f"{'-ves_self_precision':>19} {'-ves_pc_precision':>18} {'MB/owned':>9} "
+          + " ".join(f"{f'{R} ranks':>9}" for R in args.ranks) + f" {'fewest ranks':>13} {'GB/rank there':>14}")
+    for sp in ("double", "single"):
+        for pp in ("double", "single"):
+            s_b, parts_b, lu_b = dense_bytes(p, lu_kept=args.lu_kept, self_bytes=4 if sp == "single" else 8,
+                                             pc_bytes=4 if pp == "single" else 8)
+            per_own = owned + extra_lu - (s + parts + lu) + (s_b + parts_b + lu_b)
+            per_rank = lambda R: base + math.ceil(N / R) * per_own + N * repl + grid
+            fewest = next((R for R in range(1, N + 1) if per_rank(R) <= args.fit_gb * GB), None)
+            print(f"{sp:>19} {pp:>18} {per_own / 2**20:9.1f} "
+                  + " ".join(f"{per_rank(R) / GB:9.2f}" for R in args.ranks)
+                  + (f" {fewest:13d} {per_rank(fewest) / GB:14.2f}" if fewest else f" {'none':>13}"))
 
 
 if __name__ == "__main__":

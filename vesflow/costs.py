@@ -1,9 +1,12 @@
 """Cost model of a scene for `vesflow check` (paper Table 2): memory, and time per GMRES
 iteration and per solve set-up.
 
-What is stored (float64, 8 bytes):
-    self operators        N x (3C)^2            (x 2 with the double layer: S and D)
-    block preconditioner  N x (4C)^2 per cached dt octave (the LU factors; up to 3 are cached)
+What is stored (float64, 8 bytes, unless a memory option says float32, 4 bytes):
+    self operators        N x (3C)^2            (x 2 with the double layer: S and D;
+                                                 float32 with -ves_self_precision single)
+    block preconditioner  N x ((4C)^2 + (3C)^2) parts A0 and S Mb, and N x (4C)^2 per cached
+                          dt octave (the LU factors; up to 3 are cached); float32 with
+                          -ves_pc_precision single
     far/near sources      N x Mq x 7            (points, weights, normal x weight)
     near pairs            P x (C + 8 x 3 + 9)   (basis row, line points, weights)
 with C = (p+1)^2 - 1 coefficients per scalar, M = 2p(p+1) grid points, Mq = 2q(q+1) on the
@@ -57,6 +60,9 @@ class Estimate:
     mem_self: int
     mem_pc: int                  # one cached set of LU factors
     mem_pc_max: int              # up to 3 cached sets
+    mem_pc_parts: int            # the blocks' dt-independent parts A0 and S Mb
+    self_bytes: int              # bytes per entry of the self operators (8, or 4: -ves_self_precision single)
+    pc_bytes: int                # of the preconditioner's parts and LU factors
     mem_sources: int
     mem_near: int
     near_pairs: int              # at t = 0 (-1: not computed)
@@ -83,7 +89,7 @@ class Estimate:
 
     @property
     def memory(self):
-        return self.mem_self + self.mem_pc_max + self.mem_sources + self.mem_near
+        return self.mem_self + self.mem_pc_parts + self.mem_pc_max + self.mem_sources + self.mem_near
 
     def __str__(self):
         mib = lambda b: f"{b / 2**20:.1f} MiB"
@@ -98,8 +104,9 @@ class Estimate:
             f"{self.iterations_per_solve} GMRES iterations, an assumed typical count); {self.threads} thread(s), "
             f"from the cost model (vesflow/costs.py)",
             f"memory   ~ {mib(self.memory)}: self operators {mib(self.mem_self)} "
-            f"(N (3C)^2 x 8 B{' x 2, S and D' if self.double_layer else ''}), block preconditioner "
-            f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x 8 B, up to 3: {mib(self.mem_pc_max)}), "
+            f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''}), block "
+            f"preconditioner parts {mib(self.mem_pc_parts)} (N 25 C^2 x {_entry(self.pc_bytes)}) and LU "
+            f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x {_entry(self.pc_bytes)}, up to 3: {mib(self.mem_pc_max)}), "
             f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
             self._fits(),
         ])
@@ -117,6 +124,10 @@ class Estimate:
                    "does NOT fit")
         return (f"machine  {ram / 2**30:.1f} GiB RAM: {verdict} (needs {least / 2**30:.1f} GiB with one cached "
                 f"preconditioner, {self.memory / 2**30:.1f} GiB with three; 80 % of the RAM usable)")
+
+
+def _entry(nbytes):
+    return "8 B" if nbytes == 8 else f"{nbytes} B (float32)"
 
 
 def _near_pairs(scene, p, q, near_factor):
@@ -149,8 +160,11 @@ def estimate(scene, opts=None, near=True):
     eff = scene.effects()
     dl = bool(eff.double_layer)
     n_ops = 2 if dl else 1
-    mem_self = N * n_ops * (3 * C) ** 2 * 8
-    mem_pc = N * (4 * C) ** 2 * 8
+    self_bytes = 4 if o.get("self_precision") == "single" else 8
+    pc_bytes = 4 if o.get("pc_precision") == "single" else 8
+    mem_self = N * n_ops * (3 * C) ** 2 * self_bytes
+    mem_pc = N * (4 * C) ** 2 * pc_bytes
+    mem_pc_parts = N * ((4 * C) ** 2 + (3 * C) ** 2) * pc_bytes
     mem_sources = N * Mq * 7 * 8 if N > 1 else 0
     pairs = 0
     if N > 1 and near:
@@ -176,7 +190,8 @@ def estimate(scene, opts=None, near=True):
     t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
     return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
-                    mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_sources=mem_sources, mem_near=mem_near,
+                    mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_pc_parts=mem_pc_parts, self_bytes=self_bytes,
+                    pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
                     solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=_threads())

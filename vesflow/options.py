@@ -111,6 +111,12 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_pc_lag", int, 50, "rebuild the block preconditioner from the current shapes after at most this "
        "many solves (sooner when the GMRES iterations grow by half, docs/dynamics.md; 1 = every step)",
        "solver", ge=1, le=100000),
+    _O("-ves_self_precision", str, "double", "storage and product of the singular self operators: single "
+       "(float32) halves their memory, the largest per-vesicle array (docs/parallel.md)", "solver",
+       choices=("double", "single")),
+    _O("-ves_pc_precision", str, "double", "block preconditioner's parts and LU factors: single (float32) "
+       "halves their memory; the KSP is then fgmres unless -ksp_type is given (docs/parallel.md)", "solver",
+       choices=("double", "single")),
     _O("-ves_blas_threads", int, 1, "BLAS threads (numpy's OpenBLAS); the OpenMP kernels use OMP_NUM_THREADS "
        "(vesflow.threads, docs/benchmarks.md)", "solver", ge=1, le=1024),
     _O("-ves_coupling", str, "implicit", "inter-vesicle interactions in the solve (implicit) or "

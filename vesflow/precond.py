@@ -20,6 +20,11 @@ that every run of the same input rebuilds at the same solves and takes the same 
 at most, and when the number of vesicles or p changed.  The LU factors of a block are reused
 for any dt within a factor `DT_MATCH` of the dt they were built for (the two half steps of
 step doubling, the steps after).
+
+Precision (-ves_pc_precision): single keeps the parts and the LU factors in float32 (factored by
+scipy's lu_factor on float32 blocks, applied with float32 solves): half the memory; the
+step's KSP is then fgmres (`Stepper.default_ksp_type`), whose residual is the true one, so the
+solution keeps double's accuracy (docs/parallel.md).
 """
 from __future__ import annotations
 
@@ -36,12 +41,28 @@ DT_MATCH = 1.25
 MAX_DT_FACTORS = 3
 
 
-class _PerVesicle:
-    """Shared machinery: block parts per vesicle, LU factors per dt, reuse by iterations."""
+PC_DTYPES = {"double": np.float64, "single": np.float32}
 
-    def __init__(self, lag=None):
+
+class _PerVesicle:
+    """Shared machinery: block parts per vesicle, LU factors per dt, reuse by iterations.
+    precision: "double" or "single" (None: -ves_pc_precision of the options database)."""
+
+    def __init__(self, lag=None, precision=None):
         self.lag = lag
+        if precision is not None and precision not in PC_DTYPES:
+            raise ValueError(f"pc precision = {precision!r}: must be one of {', '.join(PC_DTYPES)}")
+        self.precision = precision
         self.reset()
+
+    @property
+    def dtype(self):
+        """Storage and solves of the parts and factors (float64, or float32 with -ves_pc_precision single)."""
+        if self.precision is None:
+            from petsc4py import PETSc
+            from .options import parse_value
+            self.precision = parse_value("-ves_pc_precision", PETSc.Options().getString("ves_pc_precision", "double"))
+        return PC_DTYPES[self.precision]
 
     def reset(self):
         """Forget every part and factor (rebuilt at the next setUp)."""
@@ -116,7 +137,8 @@ class _PerVesicle:
                 return lu
         timers = getattr(op.lp, "timers", None) or _NoTimers()
         with timers.stage("pc_lu"):
-            lu = map_vesicles(lambda k: lu_factor(self.finish_block(block_at(*self.parts[k], dt), op),
+            dtype = self.dtype
+            lu = map_vesicles(lambda k: lu_factor(self.finish_block(block_at(*self.parts[k], dt), op).astype(dtype, copy=False),
                                                   check_finite=False), range(len(self.parts)), op.p)
         self.factors.append((dt, lu))
         del self.factors[:-MAX_DT_FACTORS]
@@ -134,6 +156,8 @@ class _PerVesicle:
     def apply(self, pc, x, y):
         xa = x.getArray(readonly=True).reshape(self.op.N, self.op.block)
         out = np.empty_like(xa)
+        if self.dtype != np.float64:       # float32 factors: float32 solves
+            xa = xa.astype(self.dtype)
         for v, lu in enumerate(self.lu):
             out[v] = lu_solve(lu, xa[v], check_finite=False)
         y.setArray(out.ravel())
@@ -189,7 +213,9 @@ class BlockJacobi(_PerVesicle):
 
     def block_parts(self, op):
         q = pc_grid(op.p, op.q_force)
-        return map_vesicles(lambda v: op.self_block_parts(v, q), range(op.N), op.p)
+        dtype = self.dtype                 # each vesicle's parts stored in it as soon as built
+        return map_vesicles(lambda v: tuple(a.astype(dtype, copy=False) for a in op.self_block_parts(v, q)),
+                            range(op.N), op.p)
 
 
 class SphereSpectral(_PerVesicle):
@@ -208,8 +234,8 @@ class SphereSpectral(_PerVesicle):
     `regularize_tension_mode` makes it invertible, as for BlockJacobi.
     """
 
-    def __init__(self, lag=None):
-        super().__init__(lag)
+    def __init__(self, lag=None, precision=None):
+        super().__init__(lag, precision)
         self.spheres = {}
 
     def observe(self, its, failed=False, seconds=None):
@@ -229,7 +255,8 @@ class SphereSpectral(_PerVesicle):
                 lp = _SelfOnly(SelfOperators(S.coeffs, op.p, op.lp.q_self, True, op.lp.want_double, op.params.mu),
                                op.lp.want_double, np.array([key[2]]))
                 prm = VesicleParams([key[1]], [key[2]], [0.0], op.params.mu)
-                self.spheres[key] = StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0)
+                self.spheres[key] = tuple(a.astype(self.dtype, copy=False) for a in
+                                          StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0))
             out.append(self.spheres[key])
         return out
 

@@ -67,7 +67,7 @@ class Run:
         self.timers = Timers()
         settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"], near_blend=opts["near_blend"],
                             backend=_backend(opts["far"]), fmm_eps=opts["far_tol"],
-                            period=scene.periodic_length or None)
+                            period=scene.periodic_length or None, self_precision=opts["self_precision"])
         params = vesicle_params(scene)
         phys = physics(scene)
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
@@ -75,7 +75,7 @@ class Run:
         # the vesicles over the MPI ranks (None with one process: nothing gathered)
         self.part = make_partition(Surface(coeffs, self.p).centroid()) if world_size() > 1 else None
         self.stepper = Stepper(coeffs, self.p, params, phys, settings, coupling=opts["coupling"],
-                               timers=self.timers, part=self.part)
+                               timers=self.timers, part=self.part, pc_precision=opts["pc_precision"])
         self.sdc = None                   # -ts_type sdc: the SDC steps of the stepper
         self.err_order = 1                # k of the step update dt (beta tol dt / err)^(1/k)
         if opts["ts_type"] == "sdc":

@@ -20,14 +20,16 @@ from .errors import OptionError
 RTOL, MAX_IT = 1e-8, 1000          # vesflow's defaults; -ksp_rtol / -ksp_max_it override them
 
 
-def configure_ksp(ksp, A, prefix=None, default_pc=None):
+def configure_ksp(ksp, A, prefix=None, default_pc=None, ksp_type="gmres"):
     """Give ksp the operator A and configure it: vesflow's defaults, then the options database
-    under prefix.  default_pc() returns the PC python context used when -pc_type is not given."""
+    under prefix.  default_pc() returns the PC python context used when -pc_type is not given.
+    ksp_type: the default type (fgmres with a float32 preconditioner, -ves_pc_precision single:
+    GMRES's left-preconditioned residual would stall at the float32 rounding of the PC)."""
     from petsc4py import PETSc
     if prefix:
         ksp.setOptionsPrefix(prefix)
     ksp.setOperators(A)
-    ksp.setType("gmres")
+    ksp.setType(ksp_type)
     ksp.setTolerances(rtol=RTOL, max_it=MAX_IT)
     ksp.setInitialGuessNonzero(True)
     if default_pc is not None and not PETSc.Options(prefix).hasName("pc_type"):

@@ -46,7 +46,7 @@ class Stepper:
     """Holds the state (position coefficients) and advances it with first-order steps."""
 
     def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
-                 q_force=None, timers=None, ksp_prefix=None, part=None):
+                 q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None):
         self.coeffs = np.array(coeffs, dtype=float)
         self.part = part            # vesflow.parallel.Partition (None: one process owns every vesicle)
         self.params_local = params if part is None else params.take(part.idx)
@@ -58,6 +58,7 @@ class Stepper:
         self.q_force = q_force or 2 * p
         self.timers = timers or Timers()
         self.ksp_prefix = ksp_prefix
+        self.pc_precision = pc_precision   # of the default block-Jacobi PC (None: -ves_pc_precision)
         self.time = 0.0
         self.last = None            # last Solution: initial guess of the next solve
         self.extra_force = None     # hook: (surface, geometry) -> traction on the force grid (repulsion)
@@ -168,7 +169,7 @@ class Stepper:
         else:
             x.set(0.0)
         ksp = PETSc.KSP().create(comm=comm)
-        configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context)
+        configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context, ksp_type=self.default_ksp_type())
         ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (below)
         with self.timers.stage("setup"):
             ksp.setUp()
@@ -217,8 +218,20 @@ class Stepper:
     def default_pc_context(self):
         """The block-Jacobi PC context, kept across solves (it reuses LU factors, -ves_pc_lag)."""
         if getattr(self, "_pc_context", None) is None:
-            self._pc_context = _default_pc()
+            self._pc_context = _default_pc(self.pc_precision)
         return self._pc_context
+
+    def default_ksp_type(self):
+        """gmres; fgmres when the default block-Jacobi PC is float32 (-ves_pc_precision single):
+        left-preconditioned GMRES with a float32 PC leaves the solution 1.3e-7 (relative) from
+        double's at any rtol, fgmres within 3e-14 at rtol 1e-8 in the same iterations (one
+        solve of the accuracy-cost pair, p = 12; docs/parallel.md)."""
+        from .precond import PC_DTYPES
+        if self.pc_precision is not None:
+            dtype = PC_DTYPES[self.pc_precision]
+        else:                                # a context of another kind (tests): its own precision, or double
+            dtype = getattr(self.default_pc_context(), "dtype", np.float64)
+        return "fgmres" if dtype == np.float32 else "gmres"
 
     def velocity(self):
         """Instantaneous velocity and tension (one solve with dt = 0: no implicit bending)."""
@@ -332,9 +345,9 @@ def residual_modes(op, r, bnorm, x=None):
     return out
 
 
-def _default_pc():
+def _default_pc(precision=None):
     from .precond import BlockJacobi
-    return BlockJacobi()
+    return BlockJacobi(precision=precision)
 
 
 def _reason_name(reason):

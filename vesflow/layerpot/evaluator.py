@@ -27,11 +27,21 @@ class Settings:
     """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
 
     def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
-                 near_blend=0.0):
+                 near_blend=0.0, self_precision="double"):
         self.q_self, self.q_far = q_self, q_far
         self.near_blend = float(near_blend)   # width of the near/smooth blend beyond h_n, in units of h_n
         self.near_factor, self.backend, self.fmm_eps = near_factor, backend, fmm_eps
         self.period = period or None     # triply periodic cube (or box) side, None: free space
+        if self_precision not in SELF_DTYPES:
+            raise ValueError(f"self_precision = {self_precision!r}: must be one of {', '.join(SELF_DTYPES)}")
+        self.self_precision = self_precision   # storage and GEMM of the self operators (-ves_self_precision)
+
+    @property
+    def self_dtype(self):
+        return SELF_DTYPES[self.self_precision]
+
+
+SELF_DTYPES = {"double": np.float64, "single": np.float32}
 
 
 class LayerPotentials:
@@ -64,7 +74,8 @@ class LayerPotentials:
         self.surface = surface
         self.timers = timers
         with _timed(timers, "self_setup"):
-            self.self_ops = SelfOperators(self.local.coeffs, p, self.q_self, True, self.want_double, self.mu)
+            self.self_ops = SelfOperators(self.local.coeffs, p, self.q_self, True, self.want_double, self.mu,
+                                          dtype=s.self_dtype)
         # far-field sources: the upsampled grid with its quadrature weights (all vesicles)
         gq = self.local.geometry(self.q_far)
         self.Tq = sph.transform(p, self.q_far)
@@ -273,7 +284,8 @@ class LayerPotentials:
         """Errors of D[1] (lambda = 0 kernel) per regime: self vs 1/2, near and far vs 0."""
         C = sph.n_coeffs(self.p)
         if self.self_ops.double is None:
-            dl = SelfOperators(self.local.coeffs, self.p, self.q_self, False, True).double
+            dl = SelfOperators(self.local.coeffs, self.p, self.q_self, False, True,
+                               dtype=self.settings.self_dtype).double
         else:
             dl = self.self_ops.double
         one = np.zeros((self.N, 3, C))

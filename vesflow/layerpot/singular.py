@@ -11,6 +11,10 @@ coefficients the row of target t is R_t^T Q_q^T (Lambda o W o K), assembled thro
 transposed transforms (never forming Q R_t); projecting the rows on the p-grid with P gives
 the Galerkin operator S_hat = P S (3C x 3C per vesicle), applied with one batched GEMM.
 
+Precision (-ves_self_precision): the operators are assembled in float64 one vesicle at a time
+and stored in `dtype` (float64, or float32 at half the memory); float32 operators are applied in
+float32 (the density rounded to float32, the result returned in float64), docs/parallel.md.
+
 Double layer: the lambda = 0 kernel -(3/4pi)(r.n_y) r r^T / r^5 gives the principal value;
 the limits from outside/inside are pv -/+ density/2.
 """
@@ -65,7 +69,7 @@ class SelfOperators:
     value of the lambda = 0 double layer (only built when want_double).
     """
 
-    def __init__(self, coeffs, p, q=None, want_single=True, want_double=False, viscosity=1.0):
+    def __init__(self, coeffs, p, q=None, want_single=True, want_double=False, viscosity=1.0, dtype=np.float64):
         coeffs = np.asarray(coeffs, dtype=float)
         self.p = p
         self.q = 2 * p if q is None else q
@@ -73,15 +77,25 @@ class SelfOperators:
             raise ValueError(f"singular quadrature order q = {self.q} must exceed p = {p}")
         C = sph.n_coeffs(p)
         nves = coeffs.shape[0]
-        self.single = np.zeros((nves, 3 * C, 3 * C)) if want_single else None
-        self.double = np.zeros((nves, 3 * C, 3 * C)) if want_double else None
+        dtype = np.dtype(dtype)
+        if dtype not in (np.float64, np.float32):
+            raise ValueError(f"SelfOperators dtype = {dtype}: must be float64 or float32")
+        self.single = np.empty((nves, 3 * C, 3 * C), dtype) if want_single else None
+        self.double = np.empty((nves, 3 * C, 3 * C), dtype) if want_double else None
         from ..threads import map_vesicles
-        ops = map_vesicles(lambda v: self._assemble(coeffs[v], want_single, want_double), range(nves), p)
-        for v, (S, D) in enumerate(ops):
+
+        def store(v):               # one vesicle's float64 operators at a time (peak memory)
+            S, D = self._assemble(coeffs[v], want_single, want_double)
             if want_single:
                 self.single[v] = S / viscosity
             if want_double:
                 self.double[v] = D
+        map_vesicles(store, range(nves), p)
+
+    @property
+    def nbytes(self):
+        """Bytes held by the operators."""
+        return sum(a.nbytes for a in (self.single, self.double) if a is not None)
 
     def _assemble(self, X, want_single, want_double):
         """Both kernels are symmetric in (a, b): only the 6 components a <= b (SYM) are
@@ -120,7 +134,11 @@ class SelfOperators:
     # ------------------------------------------------------------------ apply
     @staticmethod
     def apply(ops, density_coeffs):
-        """Batched GEMM: ops (N, 3C, 3C), density (N, 3, C) -> (N, 3, C)."""
+        """Batched GEMM: ops (N, 3C, 3C), density (N, 3, C) -> (N, 3, C) float64 (float32
+        operators: the GEMM in float32)."""
         N, _, C = density_coeffs.shape
+        if ops.dtype == np.float32:
+            out = np.matmul(ops, density_coeffs.reshape(N, 3 * C, 1).astype(np.float32))
+            return out.reshape(N, 3, C).astype(np.float64)
         out = np.matmul(ops, density_coeffs.reshape(N, 3 * C, 1))
         return out.reshape(N, 3, C)
