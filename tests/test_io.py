@@ -299,7 +299,7 @@ def test_periodic_wrap_and_the_unwrapped_fields(tmp_path):
                                                           rotation=(10, 40, 0)))
     # the file: wrapped geometry, unwrapped centroid, image; unwrapped() restores the positions
     path = tmp_path / "periodic.h5"
-    M, C = 2 * p * (p + 1), (p + 1) ** 2 - 1
+    M = 2 * p * (p + 1)
     with OutputWriter(path, scene_text="", options_text="", version="t", p=p, n_vesicles=3,
                       periodic_length=L) as wr:
         for image in (None, k):
