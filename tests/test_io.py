@@ -276,3 +276,41 @@ def test_vtk_round_trip(tmp_path):
     mesh = frame_polydata(fr["points"], 8, {"tension": fr["tension"]}, poles=poles)
     np.testing.assert_array_equal(np.asarray(mesh.points).reshape(N, M + 2, 3)[:, M:], poles)
     assert mesh.n_open_edges == 0
+
+
+def test_periodic_wrap_and_the_unwrapped_fields(tmp_path):
+    """wrap_into_cell moves each vesicle by -L floor(centroid / L); the file stores the wrapped
+    geometry and /frames/image, RunOutput.unwrapped adds L image back to points and coefficients."""
+    from vesflow.shapes import make_shape
+    from vesflow.simulation import wrap_into_cell
+    from vesflow.surface import Surface
+    p, L = 6, 4.0
+    centres = np.array([[1.0, 2.0, 3.0], [-0.3, 4.2, 9.5], [3.99, -4.01, 0.5]])
+    c = np.array([make_shape("oblate", p, center=x, reduced_volume=0.9, rotation=(10, 40, 0)) for x in centres])
+    cen = Surface(c, p).centroid()
+    w, k = wrap_into_cell(c, p, L)
+    np.testing.assert_array_equal(k, [[0, 0, 0], [-1, 1, 2], [0, -2, 0]])
+    S = Surface(w, p)
+    np.testing.assert_allclose(S.centroid(), cen - L * k, atol=1e-12)
+    assert np.all((S.centroid() >= 0) & (S.centroid() < L))
+    np.testing.assert_allclose(S.points(), Surface(c, p).points() - L * k[:, None, :], atol=1e-12)
+    assert not wrap_into_cell(w, p, L)[1].any()                           # already inside
+    assert w is not c and np.array_equal(c[0], make_shape("oblate", p, center=centres[0], reduced_volume=0.9,
+                                                          rotation=(10, 40, 0)))
+    # the file: wrapped geometry, unwrapped centroid, image; unwrapped() restores the positions
+    path = tmp_path / "periodic.h5"
+    M = 2 * p * (p + 1)
+    with OutputWriter(path, scene_text="", options_text="", version="t", p=p, n_vesicles=3,
+                      periodic_length=L) as wr:
+        for image in (None, k):
+            wr.write_frame(time=0.0 if image is None else 1.0, points=S.points(), coefficients=w,
+                           tension=np.zeros((3, M)), area=S.area(), volume=S.volume(),
+                           centroid=cen, bending_energy=np.zeros(3), image=image)
+    out = read_output(path)
+    assert out.frames["image"].dtype == np.int64
+    np.testing.assert_array_equal(out.frames["image"], [np.zeros((3, 3), int), k])   # before: 0
+    np.testing.assert_allclose(out.unwrapped("points")[1], Surface(c, p).points(), atol=1e-12)
+    np.testing.assert_allclose(out.unwrapped("coefficients")[1], c, atol=1e-12)
+    np.testing.assert_array_equal(out.unwrapped("points")[0], S.points())
+    with pytest.raises(ValueError, match="not a position field"):
+        out.unwrapped("tension")

@@ -300,6 +300,45 @@ def test_random_packing_periodic(shape, phi):
     assert [v.center for v in other] != [v.center for v in sc.vesicles]
 
 
+def test_periodic_packing_keeps_minimum_image_gaps_across_the_faces():
+    """64-ish biconcave cells (v = 0.65) at 30 % in a periodic cube, gap 0.08: the achieved fraction
+    (volumes of the simulated SH shapes) is the requested one to half a cell, and the surfaces,
+    sampled on a fine grid and compared over all 27 images by brute force, keep at least the
+    gap the packing guarantees: each enclosing spheroid inflated by 1 + gap contains the spheroid
+    grown by gap * (its smallest semi-axis), so two cells are >= gap (a_i + a_j) apart.  Many
+    close pairs meet across a face."""
+    import itertools
+    from scipy.spatial import cKDTree
+    from vesflow import sph
+    from vesflow.simulation import initial_coefficients
+    from vesflow.surface import Surface
+    L, phi, gap = 8.17, 0.30, 0.08
+    sc = S.parse_scene(f"[domain]\nperiod = {L}\n[discretization]\np = 16\n[[lattice]]\nvolume_fraction = {phi}\n"
+                       f"gap = {gap}\nseed = 7\nvesicle = {{ shape = 'biconcave', reduced_volume = 0.65 }}\n")
+    n = sc.n_vesicles
+    c = initial_coefficients(sc)
+    vol = Surface(c, 16).volume()
+    assert n == 60 and abs(vol.sum() / L ** 3 - phi) <= 0.5 * vol.mean() / L ** 3
+    assert sc.lattices[0].achieved_volume_fraction == pytest.approx(vol.sum() / L ** 3, rel=1e-9)
+    cen = np.array([v.center for v in sc.vesicles])
+    assert cen.min() >= 0.0 and cen.max() < L
+    a_min = np.array([min(v._unit.axes) * v.scale for v in sc.vesicles])          # enclosing spheroid
+    rb = np.array([v.bounding_radius for v in sc.vesicles])
+    P = np.moveaxis(sph.transform(16, 48).synth(c), -2, -1)                         # ~0.08 apart
+    trees = [cKDTree(x) for x in P]
+    shifts = L * np.array(list(itertools.product((-1, 0, 1), repeat=3)))
+    worst, across = np.inf, 0
+    for i in range(n):
+        for j in range(i + 1, n):
+            for s in shifts:
+                if np.linalg.norm(cen[j] + s - cen[i]) < rb[i] + rb[j] + 0.3:
+                    d = trees[j].query(P[i] - s)[0].min()
+                    worst = min(worst, d / (gap * (a_min[i] + a_min[j])))
+                    across += int(np.any(s) and d < 0.3)
+    assert worst >= 1.0, f"surfaces closer than the guaranteed gap: {worst:.3f} of it"
+    assert across >= 10
+
+
 def test_random_packing_in_a_box_and_by_count():
     sc = S.parse_scene("[[lattice]]\ncount = 40\nvolume_fraction = 0.4\nseed = 2\nradius_spread = 0.2\n"
                        "vesicle = { shape = 'oblate', reduced_volume = 0.8 }\n")
@@ -332,6 +371,13 @@ def test_unreachable_packing_is_an_error():
         S.parse_scene("[[lattice]]\ncount = 8\nvolume_fraction = 0.5\nseed = 1\n")   # walls, 8 spheres
     msg = str(exc.value)
     assert msg.startswith("lattice[0].volume_fraction = 0.5: random packing") and "\n" not in msg
+    # periodic: biconcave cells at 46 % need their enclosing spheroids (+ 2 % gap) to fill 0.71
+    with pytest.raises(SceneError) as exc:
+        S.parse_scene("[domain]\nperiod = 8.17\n[[lattice]]\nvolume_fraction = 0.46\nseed = 7\n"
+                      "vesicle = { shape = 'biconcave', reduced_volume = 0.65 }\n")
+    msg = str(exc.value)
+    assert msg.startswith("lattice[0].volume_fraction = 0.46: random packing of 92 vesicles did not converge")
+    assert "would fill 0.714 of the periodic cell" in msg and "\n" not in msg
 
 
 # ---------------------------------------------------------------- overlap test

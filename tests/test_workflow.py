@@ -568,3 +568,67 @@ def test_unavailable_features_stop_before_any_output(monkeypatch, tmp_path, caps
     err = capsys.readouterr().err
     assert rc == 3 and words in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------
+# Periodic runs: the wrap into the cell, the unwrapped centroid, an exact restart across a face
+# ------------------------------------------------------------------------------------------
+FALLING = """title = "a vesicle sediments through the bottom face of a periodic box"
+[domain]
+period = 5.0
+[gravity]
+g = [0.0, 0.0, -1.0]
+[discretization]
+p = 4
+[time]
+horizon = 0.4
+dt = 0.1
+[output]
+every = 0.1
+[[vesicle]]
+shape = "oblate"
+reduced_volume = 0.9
+center = [2.5, 2.5, 0.2]
+bending_modulus = 0.1
+excess_density = 10.0
+"""
+FALLING_OPTS = ["-ves_far_tol", "1e-5", "-ts_monitor"]
+
+
+@pytest.mark.slow
+def test_periodic_run_wraps_into_the_cell_and_restarts_exactly_across_a_face(tmp_path):
+    """The vesicle falls through z = 0 at t ~ 0.25: from then on its stored geometry is moved
+    up by L (/frames/image = -1 in z), the stored centroid stays unwrapped and continuous, and
+    a run stopped after the crossing (checkpoint with image -1) and restarted ends in the very
+    state of the uninterrupted run."""
+    from vesflow.io import read_checkpoint, read_output
+    scene = tmp_path / "falling.toml"
+    scene.write_text(FALLING)
+    r = vesflow(["run", scene, "-o", tmp_path / "ref.h5"] + FALLING_OPTS)
+    assert r.returncode == 0, r.stderr
+    ref = read_output(tmp_path / "ref.h5")
+    L = 5.0
+    z = ref.frames["centroid"][:, 0, 2]
+    np.testing.assert_allclose(ref.time, [0.0, 0.1, 0.2, 0.3, 0.4], atol=1e-12)
+    assert np.all(np.diff(z) < -0.05) and z[2] > 0 and z[3] < 0             # falls through z = 0 ...
+    np.testing.assert_array_equal(ref.frames["image"][:, 0], [[0, 0, 0]] * 3 + [[0, 0, -1]] * 2)
+    stored = ref.frames["points"][:, 0].mean(axis=1)                       # ... and is drawn at the top
+    assert np.all((stored >= 0) & (stored < L))
+    assert stored[3, 2] > L - 0.2 and stored[2, 2] < 0.2
+    np.testing.assert_allclose(ref.unwrapped("points")[:, 0].mean(axis=1)[:, 2], stored[:, 2] + L * np.array([0, 0, 0, -1, -1]))
+    # the unwrapped coefficients give the unwrapped centroid
+    from vesflow.surface import Surface
+    c_unwrapped = Surface(ref.unwrapped("coefficients")[-1], 4).centroid()
+    np.testing.assert_allclose(c_unwrapped, ref.frames["centroid"][-1], atol=1e-12)
+    # stopped after the crossing, restarted: the same steps and state
+    out = tmp_path / "stopped.h5"
+    r = vesflow(["run", scene, "-o", out, "-ts_max_steps", "3"] + FALLING_OPTS)
+    assert r.returncode == 0, r.stderr
+    ck = read_checkpoint(out)
+    assert float(ck["time"]) == pytest.approx(0.3) and list(ck["image"][0]) == [0, 0, -1]
+    r = vesflow(["run", "--restart", out, "-ts_max_steps", "1000"])
+    assert r.returncode == 0, r.stderr
+    res = read_output(out)
+    assert_same_run(res, ref)
+    np.testing.assert_array_equal(res.frames["image"], ref.frames["image"])
+    np.testing.assert_array_equal(res.frames["centroid"], ref.frames["centroid"])

@@ -71,6 +71,15 @@ class Run:
         params = vesicle_params(scene)
         phys = physics(scene)
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])
+        # periodic: lattice vectors / L taken off each vesicle so far (the unwrapped position is
+        # the stored one + L image); a checkpoint without them (free space, older files) has none
+        self.image = np.zeros((scene.n_vesicles, 3), dtype=np.int64)
+        if checkpoint is not None and "image" in checkpoint:
+            self.image = np.asarray(checkpoint["image"], dtype=np.int64).reshape(-1, 3).copy()
+        period = scene_period(scene)
+        if period is not None:
+            coeffs, moved = wrap_into_cell(coeffs, self.p, period)
+            self.image += moved
         from .parallel import make_partition, world_size
         # the vesicles over the MPI ranks (None with one process: nothing gathered)
         self.part = make_partition(Surface(coeffs, self.p).centroid()) if world_size() > 1 else None
@@ -324,6 +333,7 @@ class Run:
                     st.time = target
                 self.t = st.time
                 self.u, self.sigma = sol.u, sol.sigma
+                self._wrap()
                 if self.opts["quad_tol"] > 0:
                     self._adapt_quadrature()
                 proposal = self._next_dt(dt, err)
@@ -408,6 +418,25 @@ class Run:
                                                    tol=o["correct_tol"], max_its=o["correct_max_its"])
         return coeffs
 
+    def _wrap(self):
+        """Periodic runs, at a step boundary: a vesicle whose centroid left the cell [0, L)^3
+        is moved back by a lattice vector (exact for the periodic sums, the minimum-image near
+        field and the periodic background flow), counted in self.image."""
+        L = scene_period(self.scene)
+        if L is None:
+            return
+        st = self.stepper
+        with self.timers.stage("other"):
+            coeffs, moved = wrap_into_cell(st.coeffs, self.p, L, centroid=st.surface.centroid())
+        if np.any(moved):
+            st.coeffs = coeffs
+            self.image += moved
+
+    def unwrapped_centroid(self):
+        """Centroids (N, 3) with the lattice vectors taken off by the wrap added back."""
+        L = scene_period(self.scene) or 0.0
+        return self.stepper.surface.centroid() + L * self.image
+
     # ------------------------------------------------------------------ output
     def _frame(self):
         with self.timers.stage("output"):
@@ -426,10 +455,12 @@ class Run:
         S = self.stepper.surface
         Tp = sph.transform(p)
         kappa = self.stepper.params.kappa
+        periodic = {"image": self.image} if scene_period(self.scene) is not None else {}
         self.writer.write_frame(
             time=self.t, points=S.points(), coefficients=S.coeffs, tension=Tp.synth(self.sigma),
-            area=S.area(), volume=S.volume(), centroid=S.centroid(), bending_energy=S.bending_energy(kappa),
-            velocity=np.moveaxis(Tp.synth(self.u), -2, -1), poles=S.pole_points())
+            area=S.area(), volume=S.volume(), centroid=self.unwrapped_centroid(),
+            bending_energy=S.bending_energy(kappa), velocity=np.moveaxis(Tp.synth(self.u), -2, -1),
+            poles=S.pole_points(), **periodic)
         self.next_frame = next_output_time(self.t, self.every)
         self._flush_steps()
         self.writer.write_timings(self.timers.as_dict())
@@ -439,7 +470,7 @@ class Run:
         return {"time": self.t, "dt": self.dt, "coeffs": self.stepper.coeffs, "area0": self.area0,
                 "volume0": self.volume0, "next_frame": self.next_frame, "n_accepted": self.n_accepted,
                 "sigma": self.sigma, "u": self.u, "has_last": int(self.stepper.last is not None),
-                "q_self": self.q_self, "q_near": self.q_near}
+                "q_self": self.q_self, "q_near": self.q_near, "image": self.image}
 
     def _flush_steps(self):
         if self.writer is not None and self.rows:
@@ -499,6 +530,20 @@ def _rows(a, idx):
 
 def Tgrid(p, c):
     return sph.transform(p).synth(c)
+
+
+def wrap_into_cell(coeffs, p, period, centroid=None):
+    """Move each vesicle by the lattice vector -L k, k = floor(centroid / L), so that its
+    centroid lies in [0, L)^3: the l = 0 coefficient of x, y, z changes by -sqrt(4 pi) L k.
+    Returns (coefficients, k (N, 3) integers); the input is not changed."""
+    if centroid is None:
+        centroid = Surface(coeffs, p).centroid()
+    k = np.floor(np.asarray(centroid) / period).astype(np.int64)
+    if not np.any(k):
+        return coeffs, k
+    out = np.array(coeffs, dtype=float)
+    out[:, :, 0] -= np.sqrt(4.0 * np.pi) * period * k
+    return out, k
 
 
 def scene_period(scene):

@@ -50,7 +50,11 @@ FRAME_FIELDS = {
 OPTIONAL_FIELDS = {
     "velocity": (lambda n, m, c: (n, m, 3), "surface velocity on the p-grid", "length/time", True),
     "poles": (lambda n, m, c: (n, 2, 3), "north and south pole points (for pictures)", "length", True),
+    "image": (lambda n, m, c: (n, 3), "periodic runs: lattice vector / L taken off each vesicle by the "
+              "wrap into [0, L)^3 (unwrapped position = stored + L image)", "1", False),
 }
+# fields that are not float64: name -> (dtype, fill value of frames written without them)
+FIELD_DTYPES = {"image": ("i8", 0)}
 _CHUNK_BYTES = 1 << 20  # about 1 MiB per chunk
 
 

@@ -108,6 +108,22 @@ class RunOutput:
     def restarts(self):
         return np.asarray(self.attrs.get("restarts", []), dtype=float)
 
+    def unwrapped(self, name="points"):
+        """A position field of the selected frames (points, coefficients or poles) with the
+        lattice vectors that a periodic run's wrap took off added back (/frames/image); the
+        field itself in free space."""
+        a = np.array(self.frames[name], dtype=float)
+        if "image" not in self.frames or self.periodic_length == 0.0:
+            return a
+        shift = self.periodic_length * np.asarray(self.frames["image"], dtype=float)      # (F, N, 3)
+        if name == "coefficients":
+            a[..., 0] += np.sqrt(4.0 * np.pi) * shift
+        elif name in ("points", "poles"):
+            a += shift[:, :, None, :]
+        else:
+            raise ValueError(f"unwrapped: {name!r} is not a position field (points, coefficients, poles)")
+        return a
+
     def frame(self, i):
         """The i-th selected frame as a dict of arrays (optional fields included if present)."""
         return {k: v[i] for k, v in self.frames.items()}

@@ -8,7 +8,7 @@ import h5py
 import numpy as np
 
 from ..errors import SceneError
-from .layout import (FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
+from .layout import (FIELD_DTYPES, FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
                      TIMING_KEYS, chunks, grid_size, now, time_tol)
 from .reader import _checkpoint_name, _read_tree, read_checkpoint
 
@@ -92,10 +92,11 @@ class OutputWriter:
     @staticmethod
     def _create_frame_dataset(group, name, shape, desc, units, compressed, fill=None):
         kw = dict(compression="gzip", compression_opts=4, shuffle=True) if compressed else {}
+        dtype, int_fill = FIELD_DTYPES.get(name, ("f8", None))
         if fill is not None:
-            kw["fillvalue"] = fill
+            kw["fillvalue"] = fill if int_fill is None else int_fill
         d = group.create_dataset(name, shape=(0,) + tuple(shape), maxshape=(None,) + tuple(shape),
-                                 dtype="f8", chunks=chunks(shape, compressed), **kw)
+                                 dtype=dtype, chunks=chunks(shape, compressed), **kw)
         d.attrs["description"] = desc
         d.attrs["units"] = units
         return d
@@ -110,7 +111,7 @@ class OutputWriter:
         self.n_steps = int(self._f["steps/time"].shape[0])
 
     def _check(self, name, arr, shape):
-        a = np.asarray(arr, dtype=np.float64)
+        a = np.asarray(arr, dtype=FIELD_DTYPES.get(name, ("f8",))[0])
         if a.shape != tuple(shape):
             raise ValueError(f"write_frame: {name} has shape {a.shape}, expected {tuple(shape)} "
                              f"(N={self.n_vesicles}, M={self.M}, C={self.C})")
@@ -118,10 +119,11 @@ class OutputWriter:
 
     # ------------------------------------------------------------------ writing
     def write_frame(self, time, points, coefficients, tension, area, volume, centroid,
-                    bending_energy, velocity=None, poles=None):
+                    bending_energy, velocity=None, poles=None, image=None):
         """Append one frame and flush.  Shapes: points (N, M, 3), coefficients (N, 3, C),
         tension (N, M), area/volume/bending_energy (N,), centroid (N, 3), velocity
-        (N, M, 3) optional, poles (N, 2, 3) optional (north, south).  Returns the frame index."""
+        (N, M, 3) optional, poles (N, 2, 3) optional (north, south), image (N, 3) integers
+        optional (periodic runs).  Returns the frame index."""
         N, M, C = self.n_vesicles, self.M, self.C
         values = {"time": np.float64(time)}
         given = dict(points=points, coefficients=coefficients, tension=tension, area=area, volume=volume,
@@ -129,7 +131,7 @@ class OutputWriter:
         for name, arr in given.items():
             values[name] = self._check(name, arr, FRAME_FIELDS[name][0](N, M, C))
         optional = {}
-        for name, arr in (("velocity", velocity), ("poles", poles)):
+        for name, arr in (("velocity", velocity), ("poles", poles), ("image", image)):
             if arr is not None:
                 optional[name] = self._check(name, arr, OPTIONAL_FIELDS[name][0](N, M, C))
         fr = self._f["frames"]
@@ -150,7 +152,7 @@ class OutputWriter:
             if name in optional:
                 d[k] = optional[name]
             else:
-                d[k] = np.nan
+                d[k] = FIELD_DTYPES.get(name, (None, np.nan))[1]
         self.n_frames = k + 1
         self._f.flush()
         return k

@@ -249,9 +249,11 @@ def _random_packing(ves0, origin, box, periodic, gap, rng, key, phi, rotate=True
         sweeps += 1
         fewest, since_fewest = (nbad, 0) if nbad < fewest else (fewest, since_fewest + 1)
         if sweeps > max_sweeps or since_fewest > 400:
+            fill = float(np.sum(4.0 / 3.0 * np.pi * np.prod(enc, axis=1)) / np.prod(box))
             _fail(key, f"random packing of {n} vesicles did not converge ({nbad} overlapping pairs left after "
-                       f"{sweeps} sweeps); lower volume_fraction or gap, or use a regular lattice "
-                       "(count + spacing)", phi)
+                       f"{sweeps} sweeps): their enclosing ellipsoids, inflated by 1 + gap, would fill "
+                       f"{fill:.3f} of the {'periodic cell' if periodic else 'box'} (random packings jam near "
+                       "0.6-0.7); lower volume_fraction or gap, or use a regular lattice (count + spacing)", phi)
         worst = float(1.0 - mu.min())
         best, stall = (worst, 0) if worst < best * 0.999 else (best, stall + 1)
         sel = mu < target
