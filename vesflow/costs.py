@@ -38,8 +38,9 @@ PC_SETUP_S = (0.26, 4.0)         # seconds per vesicle to build and factor its 4
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 # seconds per (near target or line point, source) kernel evaluation of one thread, the near
 # correction in blocks (stokes.*_sum_blocks): 4.24 s for 88189 pairs at p = 16, q = 32
-# (benchmarks/iteration.py --n 512, docs/far_field.md)
-NEAR_SECONDS_PER_EVAL = 2.5e-9
+# (benchmarks/iteration.py --n 512, docs/far_field.md); then 0.50 -> 0.32 s per iteration at
+# N = 64 with the blocks summed by the vectorized range sums of pairsum.h: x 0.64
+NEAR_SECONDS_PER_EVAL = 1.6e-9
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
 # doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
