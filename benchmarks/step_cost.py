@@ -114,7 +114,7 @@ def main(argv=None):
         print(f"p={p} nves={args.nves} threads={os.environ.get('OMP_NUM_THREADS', '?')} "
               f"first_step_s={t_first:.2f} stepping_s={wall:.2f} cpu_s={cpu:.2f} steps={steps} "
               f"s_per_step={wall / max(steps, 1):.4f} solves={solves} its_per_solve={its:.2f} "
-              f"setup_frac={setup / wall:.2f} load={os.getloadavg()[0]:.2f}")
+              f"setup_frac={setup / wall:.3f} load={os.getloadavg()[0]:.2f}")
         print("  stages (s): " + " ".join(f"{s}={tot[s]:.3f}" for s in STAGES))
         print("  set-up detail (s): " + " ".join(f"{s}={run.timers.detail[s]:.3f}" for s in DETAIL
                                                  if run.timers.detail.get(s, 0) > 0))
