@@ -96,10 +96,15 @@ def test_shape_errors(rng):
 
 
 # ----------------------------------------------------------------------------- exclusion and pairs
-def test_excl_variants(rng, cloud):
+@pytest.mark.parametrize("ids", ["random", "sorted"])
+def test_excl_variants(rng, cloud, ids):
+    """Unsorted ids take the per-pair test; sorted ids (vesicle order, the run's case) the sums
+    around the own group's range (pairsum.h), including ids no source has (-1, 7)."""
     src, trg = cloud
     src_id = rng.integers(0, 6, src.shape[0])
-    trg_id = rng.integers(-1, 6, trg.shape[0])         # -1: a free target, nothing excluded
+    if ids == "sorted":
+        src_id = np.sort(src_id)
+    trg_id = rng.integers(-1, 8, trg.shape[0])         # -1, 6, 7: free targets, nothing excluded
     f, nw, g = (rng.standard_normal(src.shape) for _ in range(3))
     mask = trg_id[:, None] != src_id[None, :]
     out = np.zeros_like(trg)
