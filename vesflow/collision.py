@@ -11,39 +11,49 @@ from . import sph
 from .layerpot.near import Projection, near_distance, near_pairs_images
 
 
-def signed_gaps(surface, q, period=None, part=None):
+def signed_gaps(surface, q, period=None, part=None, stats=None):
     """Signed distances of every near (point, other vesicle) pair: (pairs (P, 2), distances (P,)).
     ``period``: triply periodic box (minimum image, vesflow.layerpot.near.near_pairs_images).
     ``part`` (vesflow.parallel.Partition): only the p-grid points of this rank's vesicles,
-    against every surface (their q-grid points and areas gathered: no geometry of the other
-    vesicles is computed); pairs[:, 0] then counts the points of this rank's vesicles."""
+    against its own surfaces and those of the other ranks' vesicles whose bounding box lies
+    within h_n of one of its own (vesflow.parallel.Halo: their q-grid points exchanged, no
+    geometry of the other vesicles computed); pairs[:, 0] then counts the points of this
+    rank's vesicles.  ``stats`` (a dict): receives "received", the surfaces received."""
     p, N = surface.p, surface.n_vesicles
     Tq = sph.transform(p, q)
-    src_id = np.repeat(np.arange(N, dtype=np.int64), Tq.npts)
     if part is None:
-        mine = np.arange(N, dtype=np.int64)
+        known = np.arange(N, dtype=np.int64)
         src = np.ascontiguousarray(surface.points(q).reshape(-1, 3))
         trg = np.ascontiguousarray(surface.points().reshape(-1, 3))
-        area = surface.area()
+        h = float(near_distance(surface.area(), q).max())
+        mine = known
+        coeffs = surface.coeffs
     else:
+        from .parallel import Halo, vesicle_boxes
         from .surface import Surface
         mine = np.asarray(part.idx, dtype=np.int64)
         local = Surface(surface.coeffs[mine], p)
         n = len(mine)
-        allg = part.gather(np.concatenate([local.points(q).reshape(n, -1), local.area()[:, None]], axis=1))
-        src = np.ascontiguousarray(allg[:, :-1].reshape(-1, 3))
-        area = allg[:, -1]
-        trg = np.ascontiguousarray(local.points().reshape(-1, 3))
+        xq, xp = local.points(q), local.points()
+        h = float(near_distance([part.max(float(local.area().max()))], q).max())
+        halo = Halo(part, part.gather(vesicle_boxes(xq, xp)), h * (1.0 + 1e-6), period)
+        known = halo.known
+        src = np.ascontiguousarray(halo.exchange(xq.reshape(n, -1)).reshape(-1, 3))
+        trg = np.ascontiguousarray(xp.reshape(-1, 3))
+        coeffs = surface.coeffs[known]
+        if stats is not None:
+            stats["received"] = halo.n_received
+    src_id = np.repeat(known, Tq.npts)
     trg_id = np.repeat(mine, sph.transform(p).npts)
-    h = float(near_distance(area, q).max())
-    src_off = np.arange(N + 1, dtype=np.int64) * Tq.npts
+    src_off = np.arange(len(known) + 1, dtype=np.int64) * Tq.npts
     pairs, tpos = near_pairs_images(trg, trg_id, src, src_id, src_off, h, period)
     if not len(pairs):
         return pairs, np.zeros(0)
-    srcv = src.reshape(N, -1, 3)
-    d2 = np.einsum("pmk,pmk->pm", srcv[pairs[:, 1]] - tpos[:, None], srcv[pairs[:, 1]] - tpos[:, None])
+    rows = np.searchsorted(known, pairs[:, 1])
+    srcv = src.reshape(len(known), -1, 3)
+    d2 = np.einsum("pmk,pmk->pm", srcv[rows] - tpos[:, None], srcv[rows] - tpos[:, None])
     it, jp = np.divmod(d2.argmin(axis=1), Tq.nlon)
-    proj = Projection(surface.coeffs, p, tpos, pairs[:, 1], Tq.theta[it], Tq.phi[jp])
+    proj = Projection(coeffs, p, tpos, rows, Tq.theta[it], Tq.phi[jp])
     return pairs, proj.signed_distance
 
 

@@ -5,10 +5,14 @@ all vesicles (N x 3 x C numbers, 10 MB for 1408 vesicles at p = 16) and, after e
 velocity and tension of all of them (an Allgatherv of N x 4C); each rank sets up and applies
 the self operators, forces, preconditioner blocks, near corrections, correction and
 reparameterization of ITS vesicles only, and evaluates the far field at its own targets.
-Once per solve set-up the q-grid sources (points, weights, normals) of all vesicles are
-gathered (the geometry needed by near interactions and collision checks: replicated, not
-only the near-zone surfaces); once per GMRES iteration the far-field densities and the self
-potentials the near corrections start from.
+
+Surfaces (q-grid points, weights, normals) are not gathered: each rank computes its own
+vesicles' and receives those of the other ranks' vesicles whose bounding box lies within a
+distance (the near zone, the collision zone, the Ewald real-space cutoff) of one of its own
+(`Halo`: the boxes are gathered, 6 numbers per vesicle, and the rows exchanged by one
+Alltoallv with non-zero counts between neighbours only); per GMRES iteration the same halo
+receives the densities and self potentials the near corrections start from.  The direct far
+field passes each rank's source block around the ring of ranks (`Partition.ring`).
 
 The vesicles are ordered along the Morton (Z-order) curve of their centroids at the start of
 the run (or of a restart) and cut into contiguous blocks of equal point count (all vesicles
@@ -83,6 +87,44 @@ class Partition:
         out[self.order] = recv.reshape((self.n_total,) + local.shape[1:])
         return out
 
+    def block_vesicles(self, r):
+        """Rank r's vesicles in increasing id order (the order of its block in `ring`)."""
+        return np.sort(self.order[self.starts[r]:self.starts[r + 1]])
+
+    def owner(self):
+        """(N,): the rank that owns each vesicle."""
+        own = np.empty(self.n_total, dtype=np.int64)
+        for r in range(self.size):
+            own[self.order[self.starts[r]:self.starts[r + 1]]] = r
+        return own
+
+    def ring(self, block, lengths, fn):
+        """fn(data, r) for the block of every rank r (this rank's first, then rank - 1, rank - 2,
+        ...): each block (a float64 array, `lengths[r]` numbers on rank r) is passed to rank + 1
+        and received from rank - 1, size - 1 times; the transfer of the next block is posted
+        before fn works on the current one (overlap).  Memory: two buffers of the largest block."""
+        from mpi4py import MPI
+        lengths = np.asarray(lengths, dtype=np.int64)
+        block = np.ascontiguousarray(block, dtype=np.float64).reshape(-1)
+        if block.size != lengths[self.rank]:
+            raise ValueError(f"ring: this rank's block has {block.size} numbers, lengths says {lengths[self.rank]}")
+        bufs = [np.empty(int(lengths.max())), np.empty(int(lengths.max()))]
+        owner = self.rank
+        cur = bufs[0][:block.size]
+        cur[:] = block
+        right, left = (self.rank + 1) % self.size, (self.rank - 1) % self.size
+        for step in range(self.size):
+            reqs = []
+            if step < self.size - 1:
+                nxt_owner = (owner - 1) % self.size
+                nxt = bufs[(step + 1) % 2][:int(lengths[nxt_owner])]
+                reqs = [self.comm.Irecv([nxt, MPI.DOUBLE], source=left, tag=77),
+                        self.comm.Isend([cur, MPI.DOUBLE], dest=right, tag=77)]
+            fn(cur, owner)
+            if reqs:
+                MPI.Request.Waitall(reqs)
+                cur, owner = nxt, nxt_owner
+
     def max(self, x):
         from mpi4py import MPI
         return float(self.comm.allreduce(float(x), op=MPI.MAX))
@@ -103,6 +145,97 @@ class Partition:
     def describe(self):
         return (f"{self.size} ranks, vesicles per rank {self.counts.min()}..{self.counts.max()} "
                 "(Morton order of the centroids)")
+
+
+def vesicle_boxes(*point_sets):
+    """(n, 2, 3): the lower and upper corners of each vesicle's points, over every set given
+    (arrays (n, m, 3), e.g. its p-grid and q-grid points)."""
+    lo = np.min([np.asarray(x).min(axis=1) for x in point_sets], axis=0)
+    hi = np.max([np.asarray(x).max(axis=1) for x in point_sets], axis=0)
+    return np.stack([lo, hi], axis=1)
+
+
+def box_gaps(a, b, period=None):
+    """(len(a), len(b)): the distance between boxes a (n, 2, 3) and b (m, 2, 3) (0 if they
+    overlap), minimum image per axis in a periodic box of side(s) `period`: a lower bound of
+    the distance between any point of one box and any point (or image) of the other."""
+    ca, ha = 0.5 * (a[:, 0] + a[:, 1]), 0.5 * (a[:, 1] - a[:, 0])
+    cb, hb = 0.5 * (b[:, 0] + b[:, 1]), 0.5 * (b[:, 1] - b[:, 0])
+    d = cb[None] - ca[:, None]
+    if period is not None:
+        L = np.broadcast_to(np.asarray(period, dtype=float), (3,))
+        d -= L * np.round(d / L)
+    gap = np.maximum(np.abs(d) - (ha[:, None] + hb[None]), 0.0)
+    return np.sqrt(np.einsum("ijk,ijk->ij", gap, gap))
+
+
+class Halo:
+    """The other ranks' vesicles within `distance` of this rank's, and their exchange.
+
+    boxes (N, 2, 3): every vesicle's bounding box (`vesicle_boxes`, gathered).  `need`: the
+    vesicles of other ranks whose box lies within `distance` of the box of one of this rank's
+    vesicles (minimum image with `period`); `known`: this rank's vesicles and `need`, in
+    increasing id order, the rows `exchange` returns.  Each rank tells the owners what it
+    needs (alltoall of the id lists), so the send lists are the owners' copies of them.
+    distance = inf: every vesicle (a gather)."""
+
+    CHUNK = 1 << 18          # box pairs per vectorized block of the search
+
+    def __init__(self, part, boxes, distance, period=None):
+        self.part = part
+        boxes = np.asarray(boxes, dtype=float).reshape(-1, 2, 3)
+        owner = part.owner()
+        others = np.flatnonzero(owner != part.rank)
+        if np.isinf(distance):
+            need = others
+        else:
+            hit = np.zeros(len(others), dtype=bool)
+            mine = boxes[part.idx]
+            step = max(1, self.CHUNK // max(len(mine), 1))
+            for k in range(0, len(others), step):
+                sl = slice(k, k + step)
+                hit[sl] = (box_gaps(mine, boxes[others[sl]], period) <= distance).any(axis=0)
+            need = others[hit]
+        self.distance = float(distance)
+        self.need = need                                    # increasing ids
+        need_from = [need[owner[need] == r] for r in range(part.size)]
+        send_to = part.comm.alltoall(need_from)             # my vesicles each rank needs
+        self.known = np.union1d(part.idx, need).astype(np.int64)
+        pos_local = {int(v): k for k, v in enumerate(part.idx)}
+        self._send_rows = np.array([pos_local[int(v)] for lst in send_to for v in lst], dtype=np.int64)
+        self._send_counts = np.array([len(x) for x in send_to], dtype=np.int64)
+        self._recv_counts = np.array([len(x) for x in need_from], dtype=np.int64)
+        recv_ids = np.concatenate(need_from).astype(np.int64) if need_from else np.zeros(0, dtype=np.int64)
+        self._recv_pos = np.searchsorted(self.known, recv_ids)
+        self._own_pos = np.searchsorted(self.known, part.idx)
+        self.n_sent = int(self._send_counts.sum())
+
+    @property
+    def n_received(self):
+        return len(self.need)
+
+    def own_rows(self):
+        """Rows of `known` that are this rank's vesicles (increasing ids)."""
+        return np.searchsorted(self.known, np.sort(self.part.idx))
+
+    def exchange(self, local):
+        """Per-vesicle rows (n_local, ...) of this rank's vesicles (part.idx order) -> rows
+        (len(known), ...) of `known`: one Alltoallv, non-zero counts between neighbours only."""
+        from mpi4py import MPI
+        local = np.ascontiguousarray(local, dtype=np.float64)
+        shape = local.shape[1:]
+        item = int(np.prod(shape, dtype=np.int64))
+        flat = local.reshape(len(local), item)
+        send = np.ascontiguousarray(flat[self._send_rows])
+        recv = np.empty((len(self._recv_pos), item))
+        sc, rc = self._send_counts * item, self._recv_counts * item
+        sd = np.concatenate([[0], np.cumsum(sc)[:-1]])
+        rd = np.concatenate([[0], np.cumsum(rc)[:-1]])
+        self.part.comm.Alltoallv([send, sc, sd, MPI.DOUBLE], [recv, rc, rd, MPI.DOUBLE])
+        out = np.empty((len(self.known), item))
+        out[self._own_pos] = flat
+        out[self._recv_pos] = recv
+        return out.reshape((len(self.known),) + shape)
 
 
 def world_comm():

@@ -19,7 +19,7 @@ import numpy as np
 from .. import sph
 from .._kernels import stokes
 from . import near as nearmod
-from .far import FarField
+from .far import FarField, resolve_backend
 from .singular import SelfOperators
 
 
@@ -49,8 +49,10 @@ class LayerPotentials:
 
     def __init__(self, surface, lam=1.0, viscosity=1.0, settings=None, want_double=None, timers=None, part=None):
         """surface: all vesicles.  part (vesflow.parallel.Partition, None with one process):
-        only this rank's vesicles are targets and have self operators (`local`, `idx`); the
-        sources of all vesicles are gathered (module vesflow.parallel)."""
+        only this rank's vesicles are targets and have self operators (`local`, `idx`); this
+        rank holds the sources of its vesicles and of the other ranks' vesicles within its near
+        zone (or Ewald cutoff), `known` (vesflow.parallel.Halo); the direct far field passes
+        the other ranks' sources around the ring of ranks."""
         s = settings or Settings()
         p = surface.p
         self.part = part
@@ -76,54 +78,86 @@ class LayerPotentials:
         with _timed(timers, "self_setup"):
             self.self_ops = SelfOperators(self.local.coeffs, p, self.q_self, True, self.want_double, self.mu,
                                           dtype=s.self_dtype)
-        # far-field sources: the upsampled grid with its quadrature weights (all vesicles)
+        # far-field sources: the upsampled grid with its quadrature weights (rows of `known`)
         gq = self.local.geometry(self.q_far)
         self.Tq = sph.transform(p, self.q_far)
         mq = self.Tq.npts
         self.Tp = sph.transform(p)
+        self.halo = None
         if part is None:
+            self.known = np.arange(self.N_total, dtype=np.int64)
             self.src = np.ascontiguousarray(gq.X.reshape(-1, 3))
             self.src_w = gq.dA.reshape(-1)
             self.src_nw = np.ascontiguousarray((gq.normal * gq.dA[..., None]).reshape(-1, 3))
-            area = surface.area()
-        else:                                # one Allgatherv of the sources' geometry per set-up
-            with _timed(timers, "gather"):
-                packed = np.concatenate([gq.X.reshape(self.N, -1), (gq.normal * gq.dA[..., None]).reshape(self.N, -1),
-                                         gq.dA, self.local.area()[:, None]], axis=1)
-                allg = part.gather(packed)
-            self.src = np.ascontiguousarray(allg[:, :3 * mq].reshape(-1, 3))
-            self.src_nw = np.ascontiguousarray(allg[:, 3 * mq:6 * mq].reshape(-1, 3))
-            self.src_w = np.ascontiguousarray(allg[:, 6 * mq:7 * mq].reshape(-1))
-            area = allg[:, -1]
+            self.h = nearmod.near_distance(surface.area(), self.q_far, s.near_factor)
+        else:
             self.src_w_local = gq.dA.reshape(-1)
-        self.src_id = np.repeat(np.arange(self.N_total, dtype=np.int64), mq)
-        self.src_off = np.arange(self.N_total + 1, dtype=np.int64) * mq
-        self.h = nearmod.near_distance(area, self.q_far, s.near_factor)
         # own targets: the p-grid
         self.trg = np.ascontiguousarray(self.local.points().reshape(-1, 3))
         self.trg_id = np.repeat(np.asarray(self.idx, dtype=np.int64), self.Tp.npts)
         self.far = None
         self.near = None
+        if part is not None:
+            far_args = self._halo_setup(gq)
+        self.src_id = np.repeat(self.known, mq)
+        self.src_off = np.arange(len(self.known) + 1, dtype=np.int64) * mq
         if self.N_total > 1 or s.period:    # periodic: a single vesicle sees its images
             with _timed(timers, "near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
             with _timed(timers, "far_setup"):
-                self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend, eps=s.fmm_eps,
-                                    period=s.period, double_layer=self.want_double,
-                                    **self._far_whole_problem())
+                if part is None:
+                    self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend,
+                                        eps=s.fmm_eps, period=s.period, double_layer=self.want_double)
+                else:
+                    self.far = self._far_partitioned(*far_args)
         self.n_near_pairs_total = (self.n_near_pairs if part is None else int(part.sum(self.n_near_pairs)))
 
-    def _far_whole_problem(self):
-        """With a partition: the far-field backend and Ewald parameters are chosen for the
-        whole problem (all ranks' targets), so that every rank (and a run on one process)
-        takes the same; the Ewald sum spreads this rank's sources only (grid Allreduced)."""
-        if self.part is None:
-            return {}
-        trg_all = self.part.gather(self.trg.reshape(self.N, -1)).reshape(-1, 3)
-        mq = self.Tq.npts
-        local_src = (self.idx[:, None] * mq + np.arange(mq)[None]).reshape(-1)
-        return {"whole_targets": trg_all, "whole_own_pairs": self.N_total * mq * self.Tp.npts,
-                "spread": (self.part, local_src)}
+    def _halo_setup(self, gq):
+        """With a partition: the far-field backend (and Ewald parameters) for the whole problem,
+        so that every rank and a one-process run take the same, from the gathered bounding boxes
+        of the vesicles; then the surfaces this rank needs (vesflow.parallel.Halo): those within
+        the near zone h_n of one of its vesicles, within the Ewald real-space cutoff (ewald),
+        all (fmm: the FMM sums over gathered sources).  Returns (backend, Ewald parameters)."""
+        from ..parallel import Halo, vesicle_boxes
+        part, s, N, mq, mp = self.part, self.settings, self.N_total, self.Tq.npts, self.Tp.npts
+        with _timed(self.timers, "gather"):
+            boxes = part.gather(vesicle_boxes(gq.X, self.local.points()))
+            area_max = part.max(float(self.local.area().max()))
+        self.h = nearmod.near_distance(np.full(N, area_max), self.q_far, s.near_factor)
+        backend, params = "direct", None
+        if N > 1 or s.period:
+            corners = np.stack([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)])
+            backend, params = resolve_backend(s.backend, s.fmm_eps, s.period, N * mq, N * mp, corners,
+                                              N * mq * mp, self.want_double)
+        distance = float(self.h.max()) * (1.0 + 1e-6)
+        if backend == "ewald":
+            distance = max(distance, params.rc * (1.0 + 1e-6))
+        elif backend == "fmm":
+            distance = np.inf
+        with _timed(self.timers, "gather"):
+            self.halo = Halo(part, boxes, distance, s.period)
+            self.known = self.halo.known
+            n = self.N
+            geo = self.halo.exchange(np.concatenate([gq.X.reshape(n, -1), (gq.normal * gq.dA[..., None]).reshape(n, -1),
+                                                     gq.dA.reshape(n, -1)], axis=1))
+        self.src = np.ascontiguousarray(geo[:, :3 * mq].reshape(-1, 3))
+        self.src_nw = np.ascontiguousarray(geo[:, 3 * mq:6 * mq].reshape(-1, 3))
+        self.src_w = np.ascontiguousarray(geo[:, 6 * mq:].reshape(-1))
+        # this rank's source points within `known` (increasing ids: Partition.block_vesicles)
+        own = self.halo.own_rows()
+        self._own_src = (own[:, None] * mq + np.arange(mq)[None]).reshape(-1)
+        return backend, params
+
+    def _far_partitioned(self, backend, params):
+        """direct: this rank's sources, every rank's block passed around the ring; ewald: the
+        known sources (real-space part) and this rank's spread (grid Allreduced); fmm: all."""
+        s, o = self.settings, self._own_src
+        if backend == "direct":
+            return FarField(self.src[o], self.src_id[o], self.trg, self.trg_id, backend="direct", eps=s.fmm_eps,
+                            double_layer=self.want_double, ring=self.part)
+        spread = (self.part, o) if backend == "ewald" else None
+        return FarField(self.src, self.src_id, self.trg, self.trg_id, backend=backend, eps=s.fmm_eps,
+                        period=s.period, params=params, spread=spread, double_layer=self.want_double)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
@@ -139,7 +173,7 @@ class LayerPotentials:
             for k0 in range(0, len(pairs), 2048):
                 sl = slice(k0, k0 + 2048)
                 t, v = pairs[sl, 0], pairs[sl, 1]
-                pts = self.src.reshape(self.N_total, -1, 3)[v]                         # (B, Mq, 3)
+                pts = self.src.reshape(len(self.known), -1, 3)[self._row(v)]           # (B, Mq, 3)
                 d2 = np.einsum("bmk,bmk->bm", pts - tpos[sl][:, None], pts - tpos[sl][:, None])
                 j = d2.argmin(axis=1)
                 nearest[sl] = j
@@ -151,7 +185,9 @@ class LayerPotentials:
         if not len(pairs):
             return info
         it, jp = np.divmod(nearest, self.Tq.nlon)
-        proj = nearmod.Projection(self.surface.coeffs, self.p, tpos, pairs[:, 1],
+        # vesicles by their row in `known` (the sources this rank holds); pairs[:, 1] keeps the id
+        coeffs = self.surface.coeffs if self.part is None else self.surface.coeffs[self.known]
+        proj = nearmod.Projection(coeffs, self.p, tpos, self._row(pairs[:, 1]),
                                   self.Tq.theta[it], self.Tq.phi[jp])
         h = self.h[pairs[:, 1]]
         # targets farther than h (1 + blend) from their projection are in the smooth-rule zone
@@ -163,7 +199,9 @@ class LayerPotentials:
         info["tpos"] = np.ascontiguousarray(tpos[inside_zone])
         P = len(info["pairs"])
         # (row of tpos, vesicle): the pair list of the smooth-rule kernels
-        info["tpairs"] = np.ascontiguousarray(np.stack([np.arange(P), info["pairs"][:, 1]], axis=1))
+        rows = self._row(info["pairs"][:, 1])
+        info["rows"] = rows
+        info["tpairs"] = np.ascontiguousarray(np.stack([np.arange(P), rows], axis=1))
         sel = lambda a: a[inside_zone]
         proj.theta, proj.phi, proj.point, proj.normal = map(sel, (proj.theta, proj.phi, proj.point, proj.normal))
         proj.signed_distance, proj.converged = sel(proj.signed_distance), sel(proj.converged)
@@ -174,15 +212,19 @@ class LayerPotentials:
         pts, _ = nearmod.line_points(oriented, h[inside_zone])
         info["line_points"] = np.ascontiguousarray(pts.reshape(-1, 3))
         info["line_pairs"] = np.ascontiguousarray(
-            np.stack([np.arange(P * nearmod.L_POINTS), np.repeat(info["pairs"][:, 1], nearmod.L_POINTS)], axis=1))
+            np.stack([np.arange(P * nearmod.L_POINTS), np.repeat(rows, nearmod.L_POINTS)], axis=1))
         # each pair's target and its line points: one block of 1 + L_POINTS targets against the
         # pair's vesicle (stokes.*_sum_blocks, vectorized across the block)
         info["blocks"] = np.ascontiguousarray(np.concatenate(
             [info["tpos"][:, None], pts.reshape(P, nearmod.L_POINTS, 3)], axis=1))
-        info["block_ves"] = np.ascontiguousarray(info["pairs"][:, 1], dtype=np.int64)
+        info["block_ves"] = np.ascontiguousarray(rows, dtype=np.int64)
         info["weights"] = nearmod.interpolation_weights(oriented, h[inside_zone])
         info["basis"] = sph.evaluate(np.eye(sph.n_coeffs(self.p)), self.p, proj.theta, proj.phi).T  # (P, C)
         return info
+
+    def _row(self, ids):
+        """Rows in `known` (this rank's sources) of vesicle ids."""
+        return ids if self.part is None else np.searchsorted(self.known, ids)
 
     # ------------------------------------------------------------------ apply
     def _densities(self, f, g):
@@ -211,31 +253,42 @@ class LayerPotentials:
         fw, gq = self._densities(f, g)
         u_near, g_near = u_self, g
         if self.part is not None:
-            fw, gq, u_near, g_near = self._gathered(fw, gq, u_self, g)
+            fw, gq, u_near, g_near = self._exchanged(fw, gq, u_self, g)
         with _timed(self.timers, "far"):
-            vals = self.far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
+            vals = self._far_evaluate(fw, gq)
         with _timed(self.timers, "near"):
             vals = self._near_correct(vals, self.near, self.trg, fw, gq, u_near, g_near)
         vals = vals.reshape(self.N, -1, 3)
         return u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
 
-    def _gathered(self, fw, gq, u_self, g):
-        """One Allgatherv per GMRES iteration: the far-field densities of every vesicle (targets
-        are local, sources all) and the self potentials and double-layer densities the near
-        corrections start from (their source vesicle may live on another rank)."""
+    def _far_evaluate(self, fw, gq):
+        """The far field at this rank's targets from densities over the sources it holds (the
+        ring of ranks passes only this rank's own ones: FarField.ring)."""
+        nw = self.src_nw if gq is not None else None
+        if getattr(self.far, "ring", None) is not None:
+            o = self._own_src
+            return self.far.evaluate(f_w=fw[o], nw=None if nw is None else nw[o], g=None if gq is None else gq[o])
+        return self.far.evaluate(f_w=fw, nw=nw, g=gq)
+
+    def _exchanged(self, fw, gq, u_self, g):
+        """One halo exchange per GMRES iteration (vesflow.parallel.Halo): the far-field
+        densities of the vesicles this rank holds sources of, and the self potentials and
+        double-layer densities the near corrections start from (their source vesicle may live
+        on another rank).  Rows in `known` order."""
         N, mq, C3 = self.N, self.Tq.npts, 3 * sph.n_coeffs(self.p)
         pieces = [fw.reshape(N, -1), u_self.reshape(N, -1)]
         if gq is not None:
             pieces += [gq.reshape(N, -1), g.reshape(N, -1)]
         with _timed(self.timers, "gather"):
-            allg = self.part.gather(np.concatenate(pieces, axis=1))
+            allg = self.halo.exchange(np.concatenate(pieces, axis=1))
+        K = len(self.known)
         fw_all = np.ascontiguousarray(allg[:, :3 * mq].reshape(-1, 3))
-        u_all = allg[:, 3 * mq:3 * mq + C3].reshape(self.N_total, 3, -1)
+        u_all = allg[:, 3 * mq:3 * mq + C3].reshape(K, 3, -1)
         if gq is None:
             return fw_all, None, u_all, None
         o = 3 * mq + C3
         gq_all = np.ascontiguousarray(allg[:, o:o + 3 * mq].reshape(-1, 3))
-        g_all = allg[:, o + 3 * mq:].reshape(self.N_total, 3, -1)
+        g_all = allg[:, o + 3 * mq:].reshape(K, 3, -1)
         return fw_all, gq_all, u_all, g_all
 
     def _near_correct(self, vals, info, trg, fw, gq, u_self, g):
@@ -251,11 +304,11 @@ class LayerPotentials:
                                         blk)
         smooth = blk[:, 0]
         line = blk[:, 1:]
-        v = pairs[:, 1]
+        v, rows = pairs[:, 1], info["rows"]
         # on-surface value at the projection: the self potential of vesicle v, one-sided for D
-        u0 = np.einsum("pc,pkc->pk", info["basis"], u_self[v])
+        u0 = np.einsum("pc,pkc->pk", info["basis"], u_self[rows])
         if gq is not None:
-            g0 = np.einsum("pc,pkc->pk", info["basis"], g[v]) * (1.0 - self.lam_all[v])[:, None]
+            g0 = np.einsum("pc,pkc->pk", info["basis"], g[rows]) * (1.0 - self.lam_all[v])[:, None]
             u0 -= 0.5 * info["side"][:, None] * g0
         w = info["weights"]
         nearval = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line)
@@ -296,7 +349,12 @@ class LayerPotentials:
             return self._max_over_ranks(out)
         gq = np.ones((len(self.src), 3))
         vals = np.zeros((len(self.trg), 3))
-        stokes.stresslet_sum_excl(self.src, self.src_nw, gq, self.src_id, self.trg, self.trg_id, vals)
+        if self.part is None:
+            stokes.stresslet_sum_excl(self.src, self.src_nw, gq, self.src_id, self.trg, self.trg_id, vals)
+        else:                # the direct sum over every rank's sources: the ring of ranks
+            o = self._own_src
+            ring = FarField(self.src[o], self.src_id[o], self.trg, self.trg_id, backend="direct", ring=self.part)
+            vals = ring.evaluate(nw=self.src_nw[o], g=gq[o])
         near_t = np.zeros(len(self.trg), dtype=bool)
         if self.near is not None and "projection" in self.near:
             info = self.near

@@ -145,6 +145,26 @@ def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS, t_ewald=None, pe
     return backend
 
 
+def resolve_backend(backend, eps, period, nsrc, ntrg, points, own_pairs, double_layer=True):
+    """``(backend, Ewald parameters or None)`` for ``nsrc`` sources and ``ntrg`` targets
+    spanning the box of ``points`` (any points spanning it), ``own_pairs`` target-source pairs
+    of the same vesicle: "auto" resolved by the cost model, the Ewald parameters chosen when
+    the backend is ewald (vesflow.layerpot.ewald.choose_params)."""
+    t_ewald, params = None, None
+    if backend == "auto" and period is None and nsrc and ntrg and _have_ewald():
+        try:
+            t_ewald, params = predicted_ewald(points, nsrc, ntrg, own_pairs, eps, double_layer=double_layer)
+        except SceneError:               # no grid fits the memory: not a candidate
+            t_ewald, params = None, None
+    backend = choose_backend(nsrc, ntrg, backend, eps, t_ewald, periodic=period is not None)
+    if backend != "ewald":
+        return backend, None
+    if params is None:
+        from .ewald import choose_params
+        params = choose_params(eps, points, period, nsrc, ntrg, _stokes.max_threads(), 9 if double_layer else 3)
+    return backend, params
+
+
 def _own_pairs(src_id, trg_id):
     """Number of (target, source) pairs with the same id."""
     ids, cnt = np.unique(src_id, return_counts=True)
@@ -181,11 +201,13 @@ class FarField:
     """
 
     def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None,
-                 whole_targets=None, whole_own_pairs=None, spread=None, double_layer=True):
-        """whole_targets, whole_own_pairs: the targets of every MPI rank and their own-vesicle
-        pairs, for choosing the backend and Ewald parameters as one process would (the
-        vesicle partition, vesflow.parallel; trg are this rank's).  spread = (partition,
-        indices of this rank's sources): the Ewald sum spreads only those (EwaldSum).
+                 params=None, spread=None, double_layer=True, ring=None):
+        """params: the Ewald parameters (ewald backend; default: chosen for these sources and
+        targets, `resolve_backend`).  With the vesicle partition (vesflow.parallel; trg are this
+        rank's): the caller resolves the backend and parameters for the whole problem;
+        spread = (partition, indices of this rank's sources): the Ewald sum spreads only those
+        (EwaldSum); ring = partition (direct backend): src are this rank's sources, in the
+        order of `Partition.block_vesicles`, and every rank's block is passed around the ring.
         double_layer: the Ewald parameters are made accurate for the stresslet too."""
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
@@ -195,27 +217,21 @@ class FarField:
             raise SceneError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
         self.eps = float(eps)
         self.period = period
-        ns = self.src.shape[0]
-        whole = self.trg if whole_targets is None else _points("whole_targets", whole_targets)
-        nt_whole = whole.shape[0]
-        t_ewald, params = None, None
-        if backend == "auto" and period is None and ns and nt_whole and _have_ewald():
-            own = _own_pairs(self.src_id, self.trg_id) if whole_own_pairs is None else int(whole_own_pairs)
-            try:
-                t_ewald, params = predicted_ewald(np.concatenate([self.src, whole]), ns, nt_whole, own, self.eps,
-                                                  double_layer=double_layer)
-            except SceneError:               # no grid fits the memory: not a candidate
-                t_ewald, params = None, None
-        self.backend = choose_backend(ns, nt_whole, backend, self.eps, t_ewald, periodic=period is not None)
+        if backend == "auto" or (backend == "ewald" and params is None):
+            backend, params = resolve_backend(backend, self.eps, period, self.src.shape[0], self.trg.shape[0],
+                                              np.concatenate([self.src, self.trg]),
+                                              _own_pairs(self.src_id, self.trg_id), double_layer)
+        self.backend = choose_backend(self.src.shape[0], self.trg.shape[0], backend, self.eps,
+                                      periodic=period is not None)
+        self.ring = ring
+        if ring is not None and self.backend != "direct":
+            raise ValueError(f"FarField: the ring of ranks is for the direct backend, not {self.backend!r}")
         self.n_snapped = 0
         self.ewald = None
         if self.backend == "fmm":
             self._setup_fmm()
         elif self.backend == "ewald":
-            from .ewald import EwaldSum, choose_params
-            if params is None and whole_targets is not None:
-                params = choose_params(self.eps, np.concatenate([self.src, whole]), period, ns, nt_whole,
-                                       _stokes.max_threads(), 9 if double_layer else 3)
+            from .ewald import EwaldSum
             self.ewald = EwaldSum(self.src, self.src_id, self.trg, self.trg_id, tol=self.eps, period=period,
                                   params=params, spread=spread, double_layer=double_layer)
 
@@ -276,6 +292,8 @@ class FarField:
             return out
         if self.backend == "ewald":
             return self.ewald.evaluate(f_w, nw, g)
+        if self.backend == "direct" and self.ring is not None:
+            return self._evaluate_ring(f_w, nw, g, out)
         if self.backend == "direct":
             if f_w is not None:
                 _stokes.stokeslet_sum_excl(self.src, f_w, self.src_id, self.trg, self.trg_id, out)
@@ -283,6 +301,30 @@ class FarField:
                 _stokes.stresslet_sum_excl(self.src, nw, g, self.src_id, self.trg, self.trg_id, out)
             return out
         return self._evaluate_fmm(f_w, nw, g, out)
+
+    def _evaluate_ring(self, f_w, nw, g, out):
+        """Direct sum over every rank's sources: this rank's block (points and densities) is
+        passed around the ring of ranks (vesflow.parallel.Partition.ring) and each block is
+        summed at this rank's targets as it passes."""
+        part = self.ring
+        cols = [self.src] + [a for a in (f_w, nw, g) if a is not None]
+        k = 3 * len(cols)
+        per = self.src.shape[0] // max(part.n_local, 1)           # sources per vesicle
+        lengths = part.counts * per * k
+
+        def add(data, r):
+            ids = np.repeat(part.block_vesicles(r), per)
+            a = data.reshape(len(cols), -1, 3)
+            src = a[0]
+            j = 1
+            if f_w is not None:
+                _stokes.stokeslet_sum_excl(src, a[j], ids, self.trg, self.trg_id, out)
+                j += 1
+            if g is not None:
+                _stokes.stresslet_sum_excl(src, a[j], a[j + 1], ids, self.trg, self.trg_id, out)
+
+        part.ring(np.concatenate([c.reshape(-1) for c in cols]), lengths, add)
+        return out
 
     def _evaluate_fmm(self, f_w, nw, g, out):
         import fmm3dpy
