@@ -57,10 +57,10 @@ def signed_gaps(surface, q, period=None, part=None, stats=None):
     return pairs, proj.signed_distance
 
 
-def contacts(surface, q, period=None, part=None):
+def contacts(surface, q, period=None, part=None, stats=None):
     """Number of p-grid points on or behind another vesicle's surface (with a partition: of this
-    rank's vesicles; the caller sums over the ranks)."""
-    _, d = signed_gaps(surface, q, period, part)
+    rank's vesicles; the caller sums over the ranks).  stats: as signed_gaps."""
+    _, d = signed_gaps(surface, q, period, part, stats)
     return int(np.count_nonzero(d <= 0))
 
 
