@@ -66,6 +66,8 @@ def main(argv=None):
     ap.add_argument("--dt", type=float, default=0.1)
     ap.add_argument("--far", default="direct", help="-ves_far (direct, fmm, ewald, auto)")
     ap.add_argument("--pc", default=None, help="-pc_python_type (default: the run's choice, BlockJacobi)")
+    ap.add_argument("--trace", action="store_true", help="also tracemalloc's peak per rank (numpy's allocations; "
+                    "slower): the memory the arrays need, without the MPI library's and allocator's share of the RSS")
     ap.add_argument("extra", nargs="*", help="more vesflow options as name=value (e.g. ves_pc_lag=1)")
     args = ap.parse_args(argv)
 
@@ -90,9 +92,19 @@ def main(argv=None):
     sc = S.parse_scene(text)
     run = Run(sc, O.read_options(O.dict_getter(opts), sc))
     comm.Barrier()
+    if args.trace:
+        import tracemalloc
+        tracemalloc.start()
     t0, c0 = time.perf_counter(), time.process_time()
     run.run()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    traced = ""
+    if args.trace:
+        cur, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        lp = run.stepper.lp_last
+        traced = (f" traced_peak_gb={peak / 2 ** 30:.3f} traced_after_gb={cur / 2 ** 30:.3f} held_surfaces="
+                  f"{len(getattr(lp, 'known', range(args.nves)))}")
     st = run.stepper
     tot = run.timers.as_dict()
     steps = max(run.counts["accepted"], 1)
@@ -102,7 +114,7 @@ def main(argv=None):
             f"pc={args.pc or 'default'} "
             f"steps={steps} its={st.ksp_its} wall_s={wall:.2f} cpu_s={cpu:.2f} s_per_step={wall / steps:.3f} "
             f"cpu_per_step={cpu / steps:.3f} s_per_gmres_it={st.ksp_seconds / max(st.ksp_its, 1):.4f} "
-            f"peak_rss_gb={rss_gb:.2f}\n  stages (s): " + " ".join(f"{s}={tot[s]:.2f}" for s in STAGES)
+            f"peak_rss_gb={rss_gb:.2f}{traced}\n  stages (s): " + " ".join(f"{s}={tot[s]:.2f}" for s in STAGES)
             + " " + " ".join(f"{s}={run.timers.detail[s]:.2f}" for s in ("self_setup", "near_setup", "far_setup",
                                                                          "pc_blocks", "pc_lu", "gather")))
     lines = comm.gather(line, root=0)
