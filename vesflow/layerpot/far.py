@@ -224,8 +224,13 @@ class FarField:
         self.backend = choose_backend(self.src.shape[0], self.trg.shape[0], backend, self.eps,
                                       periodic=period is not None)
         self.ring = ring
-        if ring is not None and self.backend != "direct":
-            raise ValueError(f"FarField: the ring of ranks is for the direct backend, not {self.backend!r}")
+        if ring is not None:
+            if self.backend != "direct":
+                raise ValueError(f"FarField: the ring of ranks is for the direct backend, not {self.backend!r}")
+            per = self.src.shape[0] // max(ring.n_local, 1)
+            if not np.array_equal(self.src_id, np.repeat(ring.block_vesicles(ring.rank), per)):
+                raise ValueError("FarField: with the ring, src must be this rank's sources, its vesicles in "
+                                 "increasing id order (Partition.block_vesicles), the same count each")
         self.n_snapped = 0
         self.ewald = None
         if self.backend == "fmm":
