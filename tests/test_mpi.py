@@ -227,3 +227,20 @@ def test_ewald_holds_the_sources_within_its_real_space_cutoff(part):
     want = serial.apply(f, g)[part64.idx]
     got = dist.apply(f[part64.idx], g[part64.idx])
     assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+
+
+def test_fmm_holds_every_surface(part):
+    """fmm sums over gathered sources: the halo is every vesicle (an Alltoallv of all), and the
+    rows equal one process's at the FMM's accuracy (its tree depends on the targets)."""
+    pytest.importorskip("fmm3dpy")
+    S = Surface(coeffs(), P)
+    st = Settings(backend="fmm", fmm_eps=1e-10)
+    serial = LayerPotentials(S, lam=LAM, settings=st)
+    dist = LayerPotentials(S, lam=LAM, settings=st, part=part)
+    assert dist.far.backend == "fmm" and list(dist.known) == [0, 1, 2]
+    rng = np.random.default_rng(1)
+    C = sph.n_coeffs(P)
+    f, g = rng.standard_normal((3, 3, C)), rng.standard_normal((3, 3, C))
+    want = serial.apply(f, g)[part.idx]
+    got = dist.apply(f[part.idx], g[part.idx])
+    assert np.abs(got - want).max() <= 1e-8 * np.abs(want).max()
