@@ -1,0 +1,81 @@
+"""The periodic Ewald far field split into its parts, and the cost model re-fitted from them
+(docs/far_field.md, "Where the periodic far field's time goes").
+
+The scene of benchmarks/far_field.py (unit spheres on a jittered lattice of spacing 2.5 in
+their periodic cube), single layer, parameters from --tol; per part the best of --repeat
+process-CPU (and wall) seconds: real space (own-vesicle subtraction included), type-1 NUFFT,
+k-space multiplication, type-2 NUFFT; then the counts the cost model uses (pairs inside rc of
+the uniform-density estimate, own pairs, NUFFT points, modes) and the constants they imply.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald_split.py --n 64 512 --tol 1e-6
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald_split.py --n 512 --rc 1.2     # a given cutoff
+"""
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from far_field import scene  # noqa: E402
+from vesflow.layerpot import ewald  # noqa: E402
+
+
+def best(fn, repeat):
+    out, bw, bc = None, math.inf, math.inf
+    for _ in range(repeat):
+        w, c = time.perf_counter(), time.process_time()
+        out = fn()
+        bw, bc = min(bw, time.perf_counter() - w), min(bc, time.process_time() - c)
+    return out, bw, bc
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--n", type=int, nargs="+", default=[64])
+    ap.add_argument("--p", type=int, default=16)
+    ap.add_argument("--q", type=int, default=32)
+    ap.add_argument("--tol", type=float, default=1e-6)
+    ap.add_argument("--rc", type=float, default=None, help="real-space cutoff (default: the cost model's choice)")
+    ap.add_argument("--nufft", choices=ewald.NUFFT_LIBS, default=ewald.DEFAULT_NUFFT)
+    ap.add_argument("--repeat", type=int, default=2)
+    a = ap.parse_args(argv)
+    print(f"# periodic Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft}, "
+          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load {os.getloadavg()[0]:.2f}")
+    for n in a.n:
+        src, sid, trg, tid, f_w, nw, g = scene(n, a.p, a.q)
+        period = 2.5 * int(np.ceil(n ** (1 / 3)))
+        src, trg = src + 1.25, trg + 1.25
+        params = None
+        if a.rc is not None:
+            params = ewald.make_params(a.tol, ewald._exponents(math.log(1 / a.tol), False)[0] / a.rc, a.rc,
+                                       np.concatenate([src, trg]), period)
+        es = ewald.EwaldSum(src, sid, trg, tid, tol=a.tol, period=period, nufft=a.nufft, params=params)
+        pr = es.params
+        es.evaluate(f_w=f_w)                                     # cell lists, plans
+        _, rw, rcpu = best(lambda: es.real_space(f_w), a.repeat)
+        c = np.ascontiguousarray(f_w.T, dtype=np.complex128)
+        F, t1w, t1c = best(lambda: es._nufft.type1(c), a.repeat)
+        scale = 1.0 / float(np.prod(pr.period))
+        _, kw, kc = best(lambda: ewald._kernels.kspace_apply(F, es._psi, es._k[0], es._k[1], es._k[2], True, False,
+                                                            scale, F), a.repeat)
+        U = np.ascontiguousarray(F[:3])
+        _, t2w, t2c = best(lambda: es._nufft.type2(U), a.repeat)
+        vol = float(np.prod(pr.period))
+        pairs = trg.shape[0] * src.shape[0] * 4 / 3 * math.pi * pr.rc ** 3 / vol
+        own = n * (trg.shape[0] // n) * (src.shape[0] // n)
+        m = float(np.prod(pr.modes))
+        tot = rcpu + t1c + kc + t2c
+        print(f"N {n:4d} xi {pr.xi:.2f} rc {pr.rc:.3f} modes {pr.modes}: real {rw:.2f} / {rcpu:.2f}  "
+              f"type1 {t1w:.2f} / {t1c:.2f}  kspace {kw:.2f} / {kc:.2f}  type2 {t2w:.2f} / {t2c:.2f}  "
+              f"total cpu {tot:.2f}; model {pr.predicted_seconds(src.shape[0], trg.shape[0]):.2f}; "
+              f"{pairs:.3g} model pairs ({rcpu / pairs * 1e9:.2f} ns each incl. own), {own:.3g} own pairs, "
+              f"{m:.3g} modes  (load {os.getloadavg()[0]:.2f})", flush=True)
+
+
+if __name__ == "__main__":
+    main()
