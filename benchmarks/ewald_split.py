@@ -58,13 +58,16 @@ def main(argv=None):
         pr = es.params
         es.evaluate(f_w=f_w)                                     # cell lists, plans
         _, rw, rcpu = best(lambda: es.real_space(f_w), a.repeat)
-        c = np.ascontiguousarray(f_w.T, dtype=np.complex128)
-        F, t1w, t1c = best(lambda: es._nufft.type1(c), a.repeat)
+        c = np.zeros((2, src.shape[0]), dtype=np.complex128)      # packed as EwaldSum.fourier
+        c.real = f_w.T[0::2]
+        c.imag[:1] = f_w.T[1::2]
+        P, t1w, t1c = best(lambda: es._nufft.type1(c), a.repeat)
+        P = P.reshape((-1,) + tuple(pr.modes))
+        W = np.empty((2,) + P.shape[1:], dtype=np.complex128)
         scale = 1.0 / float(np.prod(pr.period))
-        _, kw, kc = best(lambda: ewald._kernels.kspace_apply(F, es._psi, es._k[0], es._k[1], es._k[2], True, False,
-                                                            scale, F), a.repeat)
-        U = np.ascontiguousarray(F[:3])
-        _, t2w, t2c = best(lambda: es._nufft.type2(U), a.repeat)
+        _, kw, kc = best(lambda: ewald._kernels.kspace_apply(P, es._psi, es._k[0], es._k[1], es._k[2], True, False,
+                                                            scale, W), a.repeat)
+        _, t2w, t2c = best(lambda: es._nufft.type2(W), a.repeat)
         vol = float(np.prod(pr.period))
         pairs = trg.shape[0] * src.shape[0] * 4 / 3 * math.pi * pr.rc ** 3 / vol
         own = n * (trg.shape[0] // n) * (src.shape[0] // n)

@@ -54,6 +54,7 @@ cdef extern from "ewaldsum.h" nogil:
                        const double* mL, const double* iL, int mi, int sl, int dl, double* o)
     void vf_real_coefficients(double r, double xi, double* c)
     int vf_real_path_avx512
+    int vf_pairsum_path(int avx512)
     int vf_avx512_available()
     void vf_stokeslet_range(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
                             const double* x, double* o)
@@ -72,11 +73,12 @@ cdef long SUB = 2
 
 
 def set_vector_path(bint avx512):
-    """Use the AVX-512 real-space loop (True; only if the CPU has AVX-512F/DQ) or the portable
-    vectorized one (False); returns whether the AVX-512 loop is now used.  Default: AVX-512
-    where available (tests compare the two)."""
+    """Use the AVX-512 real-space loop and own-vesicle range sums (True; only if the CPU has
+    AVX-512F/DQ) or the portable vectorized ones (False); returns whether AVX-512 is now used.
+    Default: AVX-512 where available (tests compare the two)."""
     global vf_real_path_avx512
     vf_real_path_avx512 = 1 if (avx512 and vf_avx512_available()) else 0
+    vf_pairsum_path(vf_real_path_avx512)
     return bool(vf_real_path_avx512)
 
 
@@ -192,35 +194,59 @@ def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, 
     return out
 
 
-def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] psi,
+cdef inline double complex _unpack(const double complex[:, :, :, ::1] P, Py_ssize_t c, Py_ssize_t i, Py_ssize_t j,
+                                   Py_ssize_t l, Py_ssize_t mi, Py_ssize_t mj, Py_ssize_t ml) noexcept nogil:
+    """Transform of real component c from the packed pairs: P_p = A + i B (p = c // 2), A at
+    k is (P_p(k) + conj P_p(-k)) / 2, B is (P_p(k) - conj P_p(-k)) / (2 i)."""
+    cdef double complex a = P[c // 2, i, j, l], b = P[c // 2, mi, mj, ml].conjugate()
+    if c % 2 == 0:
+        return 0.5 * (a + b)
+    return -0.5j * (a - b)
+
+
+def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] psi,
                  const double[::1] k0, const double[::1] k1, const double[::1] k2,
-                 bint single, bint double, double scale, double complex[:, :, :, ::1] U):
+                 bint single, bint double, double scale, double complex[:, :, :, ::1] W):
     """Fourier-space multiplication of the Ewald sum (vesflow/layerpot/ewald.py), one pass:
 
         U_a = scale Psi [ (k^2 F_a - k_a (k.F)) + i (k^2 (2 (S k)_a + k_a tr S) - 2 k_a (k.S k)) ]
 
+    on real sources packed two to a transform and real results packed likewise (a real
+    function's transform is Hermitian, so A + i B separates at k and -k):
+
+    P: (ceil(m / 2), n0, n1, n2), the type-1 transforms of the m real source components in
+    pairs (c_0 + i c_1, c_2 + i c_3, ...): the single-layer F_0..2 first (if ``single``), then
+    the six components (00, 11, 22, 01, 02, 12) of S (if ``double``);
+    W: (2, n0, n1, n2) gets U_0 + i U_1 and U_2, so that the type-2 transform of W holds
+    u_0 + i u_1 and u_2.  The modes with an index -n/2 (no mirror -k on the grid) are set to
+    0: they are beyond k_max (docs/far_field.md).
     psi: (n0/2 + 1, n1/2 + 1, n2/2 + 1), Psi at |k| (Psi is even in each component of k);
     k0, k1, k2: the wave numbers of the modes (-n/2 .. n/2 - 1, times 2 pi / period).
-    F: (m, n0, n1, n2), the single-layer transforms F_0..2 first (if ``single``), then the
-    six components (00, 11, 22, 01, 02, 12) of S (if ``double``); U (3 or more, n0, n1, n2)
-    gets the result in its first 3 components; it may be F itself (every mode is read before
-    it is written).  OpenMP over the first axis.
+    OpenMP over the first axis.
     """
     cdef Py_ssize_t n0 = k0.shape[0], n1 = k1.shape[0], n2 = k2.shape[0]
-    cdef Py_ssize_t i, j, l, o = 3 if single else 0
+    cdef Py_ssize_t i, j, l, mi, mj, ml, o = 3 if single else 0
     cdef Py_ssize_t h0 = n0 // 2, h1 = n1 // 2, h2 = n2 // 2
+    cdef Py_ssize_t m = o + (6 if double else 0)
     if n0 % 2 or n1 % 2 or n2 % 2 or psi.shape[0] != h0 + 1 or psi.shape[1] != h1 + 1 or psi.shape[2] != h2 + 1:
         raise ValueError("even mode counts and psi of shape (n/2 + 1) per axis required")
-    if U.shape[0] < 3 or U.shape[1] != n0 or U.shape[2] != n1 or U.shape[3] != n2:
-        raise ValueError("U must have shape (3,) + psi.shape")
-    if F.shape[0] < o + (6 if double else 0) or F.shape[1] != n0 or F.shape[2] != n1 or F.shape[3] != n2:
-        raise ValueError("F has the wrong shape")
+    if W.shape[0] != 2 or W.shape[1] != n0 or W.shape[2] != n1 or W.shape[3] != n2:
+        raise ValueError("W must have shape (2,) + the mode grid")
+    if P.shape[0] != (m + 1) // 2 or P.shape[1] != n0 or P.shape[2] != n1 or P.shape[3] != n2:
+        raise ValueError(f"P must have shape ({(m + 1) // 2},) + the mode grid")
     cdef double a, b, c, kk, ps
     cdef double complex f0, f1, f2, kf, s00, s11, s22, s01, s02, s12, q0, q1, q2, tr, ksk, u0, u1, u2
     with nogil:
         for i in prange(n0, schedule="static"):
             for j in range(n1):
                 for l in range(n2):
+                    if i == 0 or j == 0 or l == 0:
+                        W[0, i, j, l] = 0
+                        W[1, i, j, l] = 0
+                        continue
+                    mi = n0 - i
+                    mj = n1 - j
+                    ml = n2 - l
                     a = k0[i]
                     b = k1[j]
                     c = k2[l]
@@ -231,20 +257,20 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
                     u1 = 0
                     u2 = 0
                     if single:
-                        f0 = F[0, i, j, l]
-                        f1 = F[1, i, j, l]
-                        f2 = F[2, i, j, l]
+                        f0 = _unpack(P, 0, i, j, l, mi, mj, ml)
+                        f1 = _unpack(P, 1, i, j, l, mi, mj, ml)
+                        f2 = _unpack(P, 2, i, j, l, mi, mj, ml)
                         kf = a * f0 + b * f1 + c * f2
                         u0 = kk * f0 - a * kf
                         u1 = kk * f1 - b * kf
                         u2 = kk * f2 - c * kf
                     if double:
-                        s00 = F[o, i, j, l]
-                        s11 = F[o + 1, i, j, l]
-                        s22 = F[o + 2, i, j, l]
-                        s01 = F[o + 3, i, j, l]
-                        s02 = F[o + 4, i, j, l]
-                        s12 = F[o + 5, i, j, l]
+                        s00 = _unpack(P, o, i, j, l, mi, mj, ml)
+                        s11 = _unpack(P, o + 1, i, j, l, mi, mj, ml)
+                        s22 = _unpack(P, o + 2, i, j, l, mi, mj, ml)
+                        s01 = _unpack(P, o + 3, i, j, l, mi, mj, ml)
+                        s02 = _unpack(P, o + 4, i, j, l, mi, mj, ml)
+                        s12 = _unpack(P, o + 5, i, j, l, mi, mj, ml)
                         q0 = s00 * a + s01 * b + s02 * c
                         q1 = s01 * a + s11 * b + s12 * c
                         q2 = s02 * a + s12 * b + s22 * c
@@ -253,11 +279,8 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
                         u0 = u0 + 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
                         u1 = u1 + 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
                         u2 = u2 + 1j * (kk * (2.0 * q2 + c * tr) - 2.0 * c * ksk)
-                    U[0, i, j, l] = u0 * ps
-                    U[1, i, j, l] = u1 * ps
-                    U[2, i, j, l] = u2 * ps
-
-
+                    W[0, i, j, l] = (u0 + 1j * u1) * ps
+                    W[1, i, j, l] = u2 * ps
 
 
 # ---------------------------------------------------------------------------------------

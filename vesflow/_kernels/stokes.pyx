@@ -34,6 +34,7 @@ cdef extern from "pairsum.h" nogil:
                             const double* x, double* o)
     void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
                             Py_ssize_t s1, const double* x, double* o)
+    int vf_pairsum_path(int avx512)
 
 cdef double INV8PI = 1.0 / (8.0 * M_PI)      # Stokeslet prefactor 1 / (8 pi mu), mu = 1
 cdef double M3_4PI = -3.0 / (4.0 * M_PI)     # stresslet prefactor -3 / (4 pi)
@@ -137,6 +138,13 @@ cdef _check_same(name_a, Py_ssize_t na, name_b, Py_ssize_t nb):
 
 # ---------------------------------------------------------------------------------------
 # all sources -> all targets
+def set_vector_path(bint avx512):
+    """The range sums of pairsum.h by its AVX-512 loop (True; only if the CPU has AVX-512F/DQ)
+    or by the compiled vectorized loops (False); returns whether AVX-512 is now used.  Default:
+    AVX-512 where available (tests compare the two)."""
+    return bool(vf_pairsum_path(avx512))
+
+
 # ---------------------------------------------------------------------------------------
 def stokeslet_sum(const double[:, ::1] src, const double[:, ::1] f,
                   const double[:, ::1] trg, double[:, ::1] out):

@@ -82,11 +82,12 @@ NUFFT_EPS_FACTOR = 0.5
 # own 1.8 s for 5.9e8 pairs, k-space 0.12 s for 7.5e6 modes x 6; the NUFFT terms kept: type 1 +
 # type 2 measured 5.9 s against 6.7 s modelled; docs/far_field.md)
 COST = {"pair": 2.8e-8, "own_pair": 3.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 3.0e-9}
-# memory of the Fourier grids of one pass (complex, one array per source component): a
-# parameter choice keeps the double layer's pass (6 components) within it; single and double
-# layer share one pass (9 components) when that fits too
+# memory of the Fourier grids of one pass (complex; one grid per pair of real source components
+# plus two for the result, EwaldSum.fourier): a parameter choice keeps the double layer's pass
+# (3 + 2 grids) within it; single and double layer share one pass (5 + 2 grids) when that fits too
 MAX_GRID_BYTES = 4 * 2 ** 30
-MAX_MODES = MAX_GRID_BYTES // (16 * 6)
+MAX_MODES = MAX_GRID_BYTES // (16 * 5)
+PASS_GRIDS_BOTH = 7
 
 
 def _have(lib):
@@ -430,24 +431,38 @@ class EwaldSum:
         return out
 
     def fourier(self, f_w=None, nw=None, g=None):
-        """Fourier-space part over all sources, (T, 3)."""
+        """Fourier-space part over all sources, (T, 3).  The real source components go two to
+        a complex type-1 transform and the three real velocity components in two type-2
+        transforms (:func:`vesflow._kernels.ewald.kspace_apply`): 2 + 2 transforms instead of
+        3 + 3 for the single layer, 5 + 2 instead of 9 + 3 for both layers."""
         comps = []
         if f_w is not None:
             comps.append(np.asarray(f_w, dtype=np.float64).T)
         if g is not None:
             comps.append(_sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
-        c = np.ascontiguousarray(np.concatenate(comps, axis=0), dtype=np.complex128)
+        real = np.concatenate(comps, axis=0)
+        m = real.shape[0]
+        c = np.zeros(((m + 1) // 2, real.shape[1]), dtype=np.complex128)
+        c.real = real[0::2]
+        c.imag[:m // 2] = real[1::2]
+        del real
         if self._spread is None:
-            F = self._nufft.type1(c)
+            P = self._nufft.type1(c)
         else:
             part, mine, nufft = self._spread
-            F = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
+            P = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
         del c
-        # in place: each mode's components are read before its three outputs are written
-        _kernels.kspace_apply(F, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
-                              1.0 / float(np.prod(self.params.period)), F)
-        U = F[:3]
-        return self._nufft.type2(U).real.T.copy()
+        P = P.reshape((-1,) + tuple(self.params.modes))
+        W = np.empty((2,) + P.shape[1:], dtype=np.complex128)
+        _kernels.kspace_apply(P, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
+                              1.0 / float(np.prod(self.params.period)), W)
+        del P
+        w = self._nufft.type2(W)
+        out = np.empty((self.trg.shape[0], 3))
+        out[:, 0] = w[0].real
+        out[:, 1] = w[0].imag
+        out[:, 2] = w[1].real
+        return out
 
     def evaluate(self, f_w=None, nw=None, g=None):
         """Single layer of ``f_w`` plus double layer of ``g`` (orientations ``nw``), (T, 3)."""
@@ -457,7 +472,7 @@ class EwaldSum:
         if self.trg.shape[0] == 0 or self.src.shape[0] == 0 or (f_w is None and g is None):
             return out
         out = self.real_space(f_w, nw, g)
-        if f_w is not None and g is not None and 9 * 16 * float(np.prod(self.params.modes)) > MAX_GRID_BYTES:
+        if f_w is not None and g is not None and PASS_GRIDS_BOTH * 16 * float(np.prod(self.params.modes)) > MAX_GRID_BYTES:
             out += self.fourier(f_w=f_w)                 # two passes: the grids of one fit the memory
             out += self.fourier(nw=nw, g=g)
         else:
