@@ -194,11 +194,13 @@ def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, 
     return out
 
 
-cdef inline double complex _unpack(const double complex[:, :, :, ::1] P, Py_ssize_t c, Py_ssize_t i, Py_ssize_t j,
-                                   Py_ssize_t l, Py_ssize_t mi, Py_ssize_t mj, Py_ssize_t ml) noexcept nogil:
-    """Transform of real component c from the packed pairs: P_p = A + i B (p = c // 2), A at
-    k is (P_p(k) + conj P_p(-k)) / 2, B is (P_p(k) - conj P_p(-k)) / (2 i)."""
-    cdef double complex a = P[c // 2, i, j, l], b = P[c // 2, mi, mj, ml].conjugate()
+cdef inline double complex _unpack(const double complex* P, Py_ssize_t grid, Py_ssize_t c, Py_ssize_t at,
+                                   Py_ssize_t mirror) noexcept nogil:
+    """Transform of real component c from the packed pairs (grid: modes per pair; at, mirror:
+    the flat indices of k and -k): P_p = A + i B (p = c // 2), A at k is (P_p(k) + conj P_p(-k)) / 2,
+    B is (P_p(k) - conj P_p(-k)) / (2 i)."""
+    cdef const double complex* q = P + (c // 2) * grid
+    cdef double complex a = q[at], b = q[mirror].conjugate()
     if c % 2 == 0:
         return 0.5 * (a + b)
     return -0.5j * (a - b)
@@ -225,7 +227,7 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
     OpenMP over the first axis.
     """
     cdef Py_ssize_t n0 = k0.shape[0], n1 = k1.shape[0], n2 = k2.shape[0]
-    cdef Py_ssize_t i, j, l, mi, mj, ml, o = 3 if single else 0
+    cdef Py_ssize_t i, j, l, o = 3 if single else 0
     cdef Py_ssize_t h0 = n0 // 2, h1 = n1 // 2, h2 = n2 // 2
     cdef Py_ssize_t m = o + (6 if double else 0)
     if n0 % 2 or n1 % 2 or n2 % 2 or psi.shape[0] != h0 + 1 or psi.shape[1] != h1 + 1 or psi.shape[2] != h2 + 1:
@@ -236,17 +238,19 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
         raise ValueError(f"P must have shape ({(m + 1) // 2},) + the mode grid")
     cdef double a, b, c, kk, ps
     cdef double complex f0, f1, f2, kf, s00, s11, s22, s01, s02, s12, q0, q1, q2, tr, ksk, u0, u1, u2
+    cdef Py_ssize_t grid = n0 * n1 * n2, at, mr
+    cdef const double complex* pp = &P[0, 0, 0, 0]
+    cdef double complex* pw = &W[0, 0, 0, 0]
     with nogil:
         for i in prange(n0, schedule="static"):
             for j in range(n1):
                 for l in range(n2):
+                    at = (i * n1 + j) * n2 + l
                     if i == 0 or j == 0 or l == 0:
-                        W[0, i, j, l] = 0
-                        W[1, i, j, l] = 0
+                        pw[at] = 0
+                        pw[grid + at] = 0
                         continue
-                    mi = n0 - i
-                    mj = n1 - j
-                    ml = n2 - l
+                    mr = ((n0 - i) * n1 + (n1 - j)) * n2 + (n2 - l)
                     a = k0[i]
                     b = k1[j]
                     c = k2[l]
@@ -257,20 +261,20 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
                     u1 = 0
                     u2 = 0
                     if single:
-                        f0 = _unpack(P, 0, i, j, l, mi, mj, ml)
-                        f1 = _unpack(P, 1, i, j, l, mi, mj, ml)
-                        f2 = _unpack(P, 2, i, j, l, mi, mj, ml)
+                        f0 = _unpack(pp, grid, 0, at, mr)
+                        f1 = _unpack(pp, grid, 1, at, mr)
+                        f2 = _unpack(pp, grid, 2, at, mr)
                         kf = a * f0 + b * f1 + c * f2
                         u0 = kk * f0 - a * kf
                         u1 = kk * f1 - b * kf
                         u2 = kk * f2 - c * kf
                     if double:
-                        s00 = _unpack(P, o, i, j, l, mi, mj, ml)
-                        s11 = _unpack(P, o + 1, i, j, l, mi, mj, ml)
-                        s22 = _unpack(P, o + 2, i, j, l, mi, mj, ml)
-                        s01 = _unpack(P, o + 3, i, j, l, mi, mj, ml)
-                        s02 = _unpack(P, o + 4, i, j, l, mi, mj, ml)
-                        s12 = _unpack(P, o + 5, i, j, l, mi, mj, ml)
+                        s00 = _unpack(pp, grid, o, at, mr)
+                        s11 = _unpack(pp, grid, o + 1, at, mr)
+                        s22 = _unpack(pp, grid, o + 2, at, mr)
+                        s01 = _unpack(pp, grid, o + 3, at, mr)
+                        s02 = _unpack(pp, grid, o + 4, at, mr)
+                        s12 = _unpack(pp, grid, o + 5, at, mr)
                         q0 = s00 * a + s01 * b + s02 * c
                         q1 = s01 * a + s11 * b + s12 * c
                         q2 = s02 * a + s12 * b + s22 * c
@@ -279,8 +283,8 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
                         u0 = u0 + 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
                         u1 = u1 + 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
                         u2 = u2 + 1j * (kk * (2.0 * q2 + c * tr) - 2.0 * c * ksk)
-                    W[0, i, j, l] = (u0 + 1j * u1) * ps
-                    W[1, i, j, l] = u2 * ps
+                    pw[at] = (u0 + 1j * u1) * ps
+                    pw[grid + at] = u2 * ps
 
 
 # ---------------------------------------------------------------------------------------

@@ -72,16 +72,17 @@ PREFACTOR_SINGLE = 0.5
 # benchmarks/far_field.py at 1e-4 .. 1e-10: the NUFFT is not the limiting part)
 NUFFT_EPS_FACTOR = 0.5
 # cost model of the parameter choice, CPU seconds of one thread, measured with
-# benchmarks/ewald.py --calibrate (docs/far_field.md): real space per (target, source) pair
-# inside the cutoff (single layer; about the same again for the double layer) and per
-# own-vesicle pair; NUFFT spreading per point per transform per kernel width cubed; FFT per
+# benchmarks/ewald_split.py (docs/far_field.md, "Where the periodic far field's time goes"): real
+# space per (target, source) pair inside the cutoff of the uniform-density estimate (single
+# layer; about the same again for the double layer), per target (the candidate buffers of its
+# cell, the cell traversal) and per own-vesicle pair (the vectorized direct sum); NUFFT
+# spreading and interpolation per point per transform per kernel width cubed; FFT per
 # fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
-# mode per component
-# Re-measured after the cell-ordered real space (periodic N = 512, p = 16, tol 1e-6, one thread,
-# CPU, load ~10: real 4.21 s for 1.52e8 model pairs (2.13e8 counted: the points lie on surfaces),
-# own 1.8 s for 5.9e8 pairs, k-space 0.12 s for 7.5e6 modes x 6; the NUFFT terms kept: type 1 +
-# type 2 measured 5.9 s against 6.7 s modelled; docs/far_field.md)
-COST = {"pair": 2.8e-8, "own_pair": 3.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 3.0e-9}
+# mode per transform.  Fitted on periodic N = 512, p = 16, tol 1e-6, one thread, load ~3, at
+# rc = 0.99 / 1.2 / 1.5 / 1.8 / 2.1 (measured 8.0 / 7.1 / 6.5-6.7 / 8.3 / 11.1 s, modelled
+# 8.2 / 6.9 / 7.1 / 8.7 / 11.4 s; the choice there is rc = 1.33)
+COST = {"pair": 5.5e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 1.07e-9, "fft_point": 1.6e-9,
+        "mode": 1.0e-8}
 # memory of the Fourier grids of one pass (complex; one grid per pair of real source components
 # plus two for the result, EwaldSum.fourier): a parameter choice keeps the double layer's pass
 # (3 + 2 grids) within it; single and double layer share one pass (5 + 2 grids) when that fits too
@@ -135,10 +136,11 @@ def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
     fine = 3.4 * m
     wd = _kernel_width(p.nufft_eps) ** 3
     layers = 1 + (ncomp > 3)
-    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers
-    t += COST["nufft_point"] * wd * (ncomp * nsrc + 3 * ntrg)
-    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (ncomp + 3)
-    t += COST["mode"] * m * (ncomp + 3)
+    packed = (ncomp + 1) // 2                    # type-1 transforms; 2 type-2 (EwaldSum.fourier)
+    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"]
+    t += COST["nufft_point"] * wd * (packed * nsrc + 2 * ntrg)
+    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (packed + 2)
+    t += COST["mode"] * m * (packed + 2)
     return t / max(1, threads)
 
 
@@ -214,11 +216,12 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     return best[1]
 
 
-def make_params(tol, xi, rc, points, period=None):
-    """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``):
-    for tests of the independence of the result on xi."""
+def make_params(tol, xi, rc, points, period=None, double_layer=True):
+    """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``; the
+    stresslet's error prefactor unless ``double_layer`` is False): for tests of the
+    independence of the result on xi and for benchmarks/ewald_split.py."""
     lt = math.log(1.0 / tol)
-    kmax = 2.0 * xi * _exponents(lt)[1]
+    kmax = 2.0 * xi * _exponents(lt, double_layer)[1]
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if period is not None:
         L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
