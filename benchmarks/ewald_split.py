@@ -1,4 +1,4 @@
-"""The periodic Ewald far field split into its parts, and the cost model re-fitted from them
+"""The Ewald far field (periodic, or free space with --free) split into its parts, and the cost model re-fitted from them
 (docs/far_field.md, "Where the periodic far field's time goes").
 
 The scene of benchmarks/far_field.py (unit spheres on a jittered lattice of spacing 2.5 in
@@ -44,13 +44,15 @@ def main(argv=None):
                     help="real-space cutoffs (auto: the cost model's choice)")
     ap.add_argument("--nufft", choices=ewald.NUFFT_LIBS, default=ewald.DEFAULT_NUFFT)
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--free", action="store_true", help="free space (the lattice without its box)")
     a = ap.parse_args(argv)
-    print(f"# periodic Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft}, "
+    print(f"# {'free-space' if a.free else 'periodic'} Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft}, "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load {os.getloadavg()[0]:.2f}")
     for n in a.n:
         src, sid, trg, tid, f_w, nw, g = scene(n, a.p, a.q)
-        period = 2.5 * int(np.ceil(n ** (1 / 3)))
-        src, trg = src + 1.25, trg + 1.25
+        period = None if a.free else 2.5 * int(np.ceil(n ** (1 / 3)))
+        if period is not None:                   # the jittered lattice inside [0, period)^3
+            src, trg = src + 1.25, trg + 1.25
         for rc in a.rc:
             run(a, n, src, sid, trg, tid, f_w, period, rc)
 
@@ -75,7 +77,7 @@ def run(a, n, src, sid, trg, tid, f_w, period, rc):
     _, kw, kc = best(lambda: ewald._kernels.kspace_apply(P, es._psi, es._k[0], es._k[1], es._k[2], True, False,
                                                         scale, W), a.repeat)
     _, t2w, t2c = best(lambda: es._nufft.type2(W), a.repeat)
-    vol = float(np.prod(pr.period))
+    vol = float(np.prod(pr.box))
     pairs = trg.shape[0] * src.shape[0] * 4 / 3 * math.pi * pr.rc ** 3 / vol
     own = n * (trg.shape[0] // n) * (src.shape[0] // n)
     m = float(np.prod(pr.modes))

@@ -60,6 +60,10 @@ cdef extern from "ewaldsum.h" nogil:
                             const double* x, double* o)
     void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
                             Py_ssize_t s1, const double* x, double* o)
+    void vf_stokeslet_targets(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
+                              const double* x, Py_ssize_t K, double* o)
+    void vf_stresslet_targets(const double* src, const double* nw, const double* g, Py_ssize_t s0,
+                              Py_ssize_t s1, const double* x, Py_ssize_t K, double* o)
 
 
 cdef double INV8PI = 1.0 / (8.0 * M_PI)
@@ -306,17 +310,10 @@ ctypedef struct _Cells:
     const long* cstart        # sources of cell c: cstart[c] .. cstart[c + 1]
     const long* tstart        # targets (cell order) of cell c: tstart[c] .. tstart[c + 1]
     const double* xw          # wrapped targets, cell order
-    const double* xu          # given targets, cell order
-    const long* tvi
     const long* torder        # original index of each cell-ordered target
-    const double* src         # given sources, id-sorted (own-vesicle sums)
-    const long* src_off
     const double* fc          # densities in cell order (NULL: layer absent)
     const double* nwc
     const double* gc
-    const double* f           # densities id-sorted
-    const double* nw
-    const double* g
 
 
 cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
@@ -329,7 +326,6 @@ cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
     cdef double sh[375]
     cdef long nnb = 0, d0, d1, d2, e0, e1, e2, t, j, m, k, nc = 0, s
     cdef double o[3]
-    cdef double w[3]
     cdef bint do_sl = b.fc != NULL, do_dl = b.gc != NULL
     cc[0] = c0
     cc[1] = c1
@@ -393,18 +389,6 @@ cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
         o[2] = 0.0
         if nc > 0:
             vf_ewald_real(buf, nc, ld, b.xw + 3 * t, b.xi, b.rc2, b.mL, b.iL, b.mi_any, do_sl, do_dl, o)
-        if b.tvi[t] >= 0:
-            # minus the own vesicle's full kernel (r = 0 skipped)
-            w[0] = 0.0
-            w[1] = 0.0
-            w[2] = 0.0
-            if do_sl:
-                vf_stokeslet_range(b.src, b.f, b.src_off[b.tvi[t]], b.src_off[b.tvi[t] + 1], b.xu + 3 * t, w)
-            if do_dl:
-                vf_stresslet_range(b.src, b.nw, b.g, b.src_off[b.tvi[t]], b.src_off[b.tvi[t] + 1], b.xu + 3 * t, w)
-            o[0] -= w[0]
-            o[1] -= w[1]
-            o[2] -= w[2]
         s = b.torder[t]
         out[3 * s] += o[0]
         out[3 * s + 1] += o[1]
@@ -461,8 +445,14 @@ class RealSpace:
         self.tcells = np.flatnonzero(np.diff(self.tstart)).astype(np.int64)   # cells holding targets
         self.ys = np.ascontiguousarray(sw[sorder])
         self.xw = np.ascontiguousarray(tw[torder])
-        self.xu = np.ascontiguousarray(trg_np[torder])
-        self.tvi = np.ascontiguousarray(np.asarray(trg_vi, dtype=np.int64)[torder])
+        # the targets with an own vesicle grouped by it (own-vesicle sums): original indices
+        # oidx, given positions xo, vesicle v's at ostart[v] .. ostart[v + 1]
+        vi = np.asarray(trg_vi, dtype=np.int64).reshape(-1)
+        nv = len(src_off) - 1
+        self.oidx = np.ascontiguousarray(np.flatnonzero(vi >= 0)[np.argsort(vi[vi >= 0], kind="stable")], dtype=np.int64)
+        self.xo = np.ascontiguousarray(trg_np[self.oidx]).reshape(-1, 3)
+        self.ostart = np.zeros(nv + 1, dtype=np.int64)
+        self.ostart[1:] = np.cumsum(np.bincount(vi[vi >= 0], minlength=nv))
         self.torder = np.ascontiguousarray(torder, dtype=np.int64)
         self.src = src_np
         self.src_off = np.ascontiguousarray(src_off, dtype=np.int64)
@@ -489,9 +479,9 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
     cdef double[:, ::1] fc = np.ascontiguousarray(np.asarray(f)[sorder]) if do_sl else None
     cdef double[:, ::1] nwc = np.ascontiguousarray(np.asarray(nw)[sorder]) if do_dl else None
     cdef double[:, ::1] gc = np.ascontiguousarray(np.asarray(g)[sorder]) if do_dl else None
-    cdef double[:, ::1] ys = rs.ys, xw = rs.xw, xu = rs.xu, src = rs.src
-    cdef long[::1] cstart = rs.cstart, tstart = rs.tstart, tvi = rs.tvi
-    cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells
+    cdef double[:, ::1] ys = rs.ys, xw = rs.xw, xo = rs.xo, src = rs.src
+    cdef long[::1] cstart = rs.cstart, tstart = rs.tstart
+    cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells, ostart = rs.ostart
     cdef _Cells b
     cdef int j
     b.mi_any = False
@@ -508,20 +498,41 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
     b.cstart = &cstart[0]
     b.tstart = &tstart[0]
     b.xw = &xw[0, 0]
-    b.xu = &xu[0, 0]
-    b.tvi = &tvi[0]
     b.torder = &torder[0]
-    b.src = &src[0, 0]
-    b.src_off = &src_off[0]
     b.fc = &fc[0, 0] if do_sl else NULL
     b.nwc = &nwc[0, 0] if do_dl else NULL
     b.gc = &gc[0, 0] if do_dl else NULL
-    b.f = &f[0, 0] if do_sl else NULL
-    b.nw = &nw[0, 0] if do_dl else NULL
-    b.g = &g[0, 0] if do_dl else NULL
     cdef double* po = &out[0, 0]
     cdef const long* pc = &tcells[0]
     cdef Py_ssize_t k, nc = tcells.shape[0]
     with nogil:
         for k in prange(nc, schedule="dynamic", chunksize=8):
             _cell_targets(&b, pc[k], po)
+    # minus each vesicle's full kernel at its own targets (r = 0 skipped), the targets of a
+    # vesicle 4 at a time against its sources (pairsum.h)
+    own = np.zeros((xo.shape[0], 3))
+    cdef double[:, ::1] ow = own
+    cdef Py_ssize_t v, nv = ostart.shape[0] - 1
+    cdef const double* pf = &f[0, 0] if do_sl else NULL
+    cdef const double* pn = &nw[0, 0] if do_dl else NULL
+    cdef const double* pg = &g[0, 0] if do_dl else NULL
+    if xo.shape[0] > 0:
+        with nogil:
+            for v in prange(nv, schedule="dynamic"):
+                if ostart[v + 1] > ostart[v]:
+                    if do_sl:
+                        vf_stokeslet_targets(&src[0, 0], pf, src_off[v], src_off[v + 1], &xo[ostart[v], 0],
+                                             ostart[v + 1] - ostart[v], &ow[ostart[v], 0])
+                    if do_dl:
+                        vf_stresslet_targets(&src[0, 0], pn, pg, src_off[v], src_off[v + 1], &xo[ostart[v], 0],
+                                             ostart[v + 1] - ostart[v], &ow[ostart[v], 0])
+        _scatter_sub(out, rs.oidx, own)
+
+
+def _scatter_sub(double[:, ::1] out, const long[::1] idx, const double[:, ::1] val):
+    """out[idx[k]] -= val[k] (distinct idx)."""
+    cdef Py_ssize_t k
+    for k in range(idx.shape[0]):
+        out[idx[k], 0] -= val[k, 0]
+        out[idx[k], 1] -= val[k, 1]
+        out[idx[k], 2] -= val[k, 2]

@@ -185,6 +185,78 @@ VF_PAIRSUM_AVX512 static void vf_stresslet_range_avx512(const double *src, const
     o[1] += _mm512_reduce_add_pd(a1) * c;
     o[2] += _mm512_reduce_add_pd(a2) * c;
 }
+
+/* VF_MT targets at once against the same sources: the de-interleaved source vectors are
+ * shared, each target's arithmetic is that of vf_*_range_avx512 (the same values, bit for bit) */
+#define VF_MT 4
+VF_PAIRSUM_AVX512 static void vf_stokeslet_multi_avx512(const double *src, const double *f, ptrdiff_t s0,
+                                                        ptrdiff_t s1, const double *x, int K, double *o)
+{
+    __m512d X[VF_MT][3], a[VF_MT][3];
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            X[k][d] = _mm512_set1_pd(x[3 * k + d]);
+            a[k][d] = _mm512_setzero_pd();
+        }
+    for (ptrdiff_t s = s0; s < s1; s += 8) {
+        const int m = s1 - s >= 8 ? 8 : (int)(s1 - s);
+        const __mmask8 valid = (__mmask8)(m == 8 ? 0xFF : (1u << m) - 1u);
+        __m512d y0, y1, y2, f0, f1, f2;
+        vf_load3x8(src, s, m, &y0, &y1, &y2);
+        vf_load3x8(f, s, m, &f0, &f1, &f2);
+        for (int k = 0; k < K; ++k) {
+            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                          r2 = _mm512_sub_pd(X[k][2], y2);
+            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+            const __m512d ri = vf_rsqrt_or_0(rr, valid);
+            const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
+                                             _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
+            a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
+            a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
+            a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
+        }
+    }
+    const double c = 1.0 / (8.0 * M_PI);
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d)
+            o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * c;
+}
+
+VF_PAIRSUM_AVX512 static void vf_stresslet_multi_avx512(const double *src, const double *nw, const double *g,
+                                                        ptrdiff_t s0, ptrdiff_t s1, const double *x, int K, double *o)
+{
+    __m512d X[VF_MT][3], a[VF_MT][3];
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            X[k][d] = _mm512_set1_pd(x[3 * k + d]);
+            a[k][d] = _mm512_setzero_pd();
+        }
+    for (ptrdiff_t s = s0; s < s1; s += 8) {
+        const int m = s1 - s >= 8 ? 8 : (int)(s1 - s);
+        const __mmask8 valid = (__mmask8)(m == 8 ? 0xFF : (1u << m) - 1u);
+        __m512d y0, y1, y2, n0, n1, n2, g0, g1, g2;
+        vf_load3x8(src, s, m, &y0, &y1, &y2);
+        vf_load3x8(nw, s, m, &n0, &n1, &n2);
+        vf_load3x8(g, s, m, &g0, &g1, &g2);
+        for (int k = 0; k < K; ++k) {
+            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                          r2 = _mm512_sub_pd(X[k][2], y2);
+            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+            const __m512d ri = vf_rsqrt_or_0(rr, valid);
+            const __m512d ri2 = _mm512_mul_pd(ri, ri);
+            const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
+            const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
+            const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
+            a[k][0] = _mm512_fmadd_pd(c, r0, a[k][0]);
+            a[k][1] = _mm512_fmadd_pd(c, r1, a[k][1]);
+            a[k][2] = _mm512_fmadd_pd(c, r2, a[k][2]);
+        }
+    }
+    const double c = -3.0 / (4.0 * M_PI);
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d)
+            o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * c;
+}
 #else
 static int vf_pairsum_use_avx512(void) { return 0; }
 static int vf_pairsum_path(int avx512) { (void)avx512; return 0; }
@@ -214,5 +286,34 @@ static void vf_stresslet_range(const double *src, const double *nw, const double
     }
 #endif
     vf_stresslet_range_clones(src, nw, g, s0, s1, x, o);
+}
+/* K targets x[3k..3k+2] (any K) against sources s0 .. s1: o[3k..] as vf_stokeslet_range for
+ * each target (the same values), VF_MT targets at a time sharing the source loads */
+static void vf_stokeslet_targets(const double *src, const double *f, ptrdiff_t s0, ptrdiff_t s1, const double *x,
+                                 ptrdiff_t K, double *o)
+{
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+    if (vf_pairsum_use_avx512()) {
+        for (ptrdiff_t k = 0; k < K; k += VF_MT)
+            vf_stokeslet_multi_avx512(src, f, s0, s1, x + 3 * k, (int)(K - k < VF_MT ? K - k : VF_MT), o + 3 * k);
+        return;
+    }
+#endif
+    for (ptrdiff_t k = 0; k < K; ++k)
+        vf_stokeslet_range_clones(src, f, s0, s1, x + 3 * k, o + 3 * k);
+}
+
+static void vf_stresslet_targets(const double *src, const double *nw, const double *g, ptrdiff_t s0, ptrdiff_t s1,
+                                 const double *x, ptrdiff_t K, double *o)
+{
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+    if (vf_pairsum_use_avx512()) {
+        for (ptrdiff_t k = 0; k < K; k += VF_MT)
+            vf_stresslet_multi_avx512(src, nw, g, s0, s1, x + 3 * k, (int)(K - k < VF_MT ? K - k : VF_MT), o + 3 * k);
+        return;
+    }
+#endif
+    for (ptrdiff_t k = 0; k < K; ++k)
+        vf_stresslet_range_clones(src, nw, g, s0, s1, x + 3 * k, o + 3 * k);
 }
 #endif
