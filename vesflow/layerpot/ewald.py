@@ -322,19 +322,20 @@ class _Nufft:
                                                  fft_order=False)
         return self._plans[kind]
 
-    def type1(self, c):
-        """``F_k = sum_s c_s e^{-i k.y_s}``: c (m, S) complex -> (m, n1, n2, n3)."""
+    def type1(self, c, out=None):
+        """``F_k = sum_s c_s e^{-i k.y_s}``: c (m, S) complex -> (m, n1, n2, n3) (into ``out``
+        if given)."""
         m = c.shape[0]
         if self.lib == "finufft":
-            return self._finufft_plan(1, m).execute(np.ascontiguousarray(c))
-        return self._ducc_plan(1).nu2u(points=np.ascontiguousarray(c), forward=True)
+            return self._finufft_plan(1, m).execute(np.ascontiguousarray(c), out=out)
+        return self._ducc_plan(1).nu2u(points=np.ascontiguousarray(c), forward=True, out=out)
 
-    def type2(self, U):
-        """``u_t = sum_k U_k e^{+i k.x_t}``: U (m, n1, n2, n3) -> (m, T) complex."""
+    def type2(self, U, out=None):
+        """``u_t = sum_k U_k e^{+i k.x_t}``: U (m, n1, n2, n3) -> (m, T) complex (into ``out``)."""
         m = U.shape[0]
         if self.lib == "finufft":
-            return self._finufft_plan(2, m).execute(np.ascontiguousarray(U))
-        return self._ducc_plan(2).u2nu(grid=np.ascontiguousarray(U), forward=False)
+            return self._finufft_plan(2, m).execute(np.ascontiguousarray(U), out=out)
+        return self._ducc_plan(2).u2nu(grid=np.ascontiguousarray(U), forward=False, out=out)
 
 
 def _sym6(nw, g):
@@ -414,6 +415,15 @@ class EwaldSum:
         self._psi = kernel_psi(p, self.threads)
         self._k = _kvectors(p)
         self._real = None            # cell lists of the real-space part, built at the first evaluation
+        self._buffers = {}
+
+    def _buffer(self, name, shape):
+        """A complex array kept between evaluations (the grids of a GMRES solve's every
+        iteration: no new allocation and first-touch page faults per call), one per name."""
+        b = self._buffers.get(name)
+        if b is None or b.shape != tuple(shape):
+            self._buffers[name] = b = np.empty(shape, dtype=np.complex128)
+        return b
 
     def _sorted(self, a):
         return a if self._perm is None else np.ascontiguousarray(a[self._perm])
@@ -450,17 +460,17 @@ class EwaldSum:
         c.imag[:m // 2] = real[1::2]
         del real
         if self._spread is None:
-            P = self._nufft.type1(c)
+            P = self._nufft.type1(c, out=self._buffer("P", (c.shape[0],) + tuple(self.params.modes)))
         else:
             part, mine, nufft = self._spread
             P = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
         del c
         P = P.reshape((-1,) + tuple(self.params.modes))
-        W = np.empty((2,) + P.shape[1:], dtype=np.complex128)
+        W = self._buffer("W", (2,) + P.shape[1:])
         _kernels.kspace_apply(P, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
                               1.0 / float(np.prod(self.params.period)), W)
         del P
-        w = self._nufft.type2(W)
+        w = self._nufft.type2(W, out=self._buffer("w", (2, self.trg.shape[0])))
         out = np.empty((self.trg.shape[0], 3))
         out[:, 0] = w[0].real
         out[:, 1] = w[0].imag
