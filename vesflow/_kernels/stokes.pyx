@@ -24,6 +24,8 @@ Arrays: points and vectors are C-contiguous ``(n, 3)`` float64; group ids, offse
 pair lists are int64 (``long`` on Linux).  Group ("vesicle") ids are arbitrary integers;
 only equality matters.
 """
+import numpy as np
+
 from cython.parallel cimport prange
 from libc.math cimport sqrt, M_PI
 cimport openmp
@@ -458,8 +460,13 @@ def stokeslet_sum_blocks(const double[:, ::1] src, const double[:, ::1] f, const
         return
     cdef const double* ps = _p2(src)
     cdef const double* pf = _p2(f)
+    # the blocks in the order of their source vesicle: consecutive blocks reuse its sources
+    # from the cache (N = 512: 26 MB of sources and as much density)
+    cdef long[::1] order = np.argsort(ves, kind="stable")
+    cdef Py_ssize_t k
     with nogil:
-        for p in prange(n, schedule="dynamic", chunksize=16):
+        for k in prange(n, schedule="dynamic", chunksize=16):
+            p = order[k]
             _stokeslet_block(ps, pf, src_off[ves[p]], src_off[ves[p] + 1], &trg[p, 0, 0], K, &out[p, 0, 0])
 
 
@@ -479,6 +486,9 @@ def stresslet_sum_blocks(const double[:, ::1] src, const double[:, ::1] nw, cons
     cdef const double* ps = _p2(src)
     cdef const double* pn = _p2(nw)
     cdef const double* pg = _p2(g)
+    cdef long[::1] order = np.argsort(ves, kind="stable")
+    cdef Py_ssize_t k
     with nogil:
-        for p in prange(n, schedule="dynamic", chunksize=16):
+        for k in prange(n, schedule="dynamic", chunksize=16):
+            p = order[k]
             _stresslet_block(ps, pn, pg, src_off[ves[p]], src_off[ves[p] + 1], &trg[p, 0, 0], K, &out[p, 0, 0])
