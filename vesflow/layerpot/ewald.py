@@ -71,6 +71,9 @@ PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol (1.0 and 0.1 gave the same errors on the scene of
 # benchmarks/far_field.py at 1e-4 .. 1e-10: the NUFFT is not the limiting part)
 NUFFT_EPS_FACTOR = 0.5
+# ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
+DUCC0_SIGMA = (1.3, 1.6)
+DUCC0_SIGMA_MIN_EPS = 5e-11
 # cost model of the parameter choice, CPU seconds of one thread, measured with
 # benchmarks/ewald_split.py (docs/far_field.md, "Where the periodic far field's time goes"): real
 # space per (target, source) pair inside the cutoff of the uniform-density estimate (single
@@ -316,10 +319,15 @@ class _Nufft:
         if kind not in self._plans:
             import ducc0
             pts = self.src if kind == 1 else self.trg
+            # oversampling 1.3 .. 1.6 instead of ducc0's own choice in 1.19 .. 2.51: type 1 at
+            # N = 512 (1.08e6 sources, 146^3 modes) 1.64 -> 1.36-1.39 s, N = 64 0.21 -> 0.12 s
+            # (docs/far_field.md, "Speed: third session")
+            # (ducc0 has kernels for them down to eps 5e-11; below, its own range)
+            sigma = DUCC0_SIGMA if self.eps >= DUCC0_SIGMA_MIN_EPS else (1.19, 2.51)
             self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),
                                                  grid_shape=self.modes, epsilon=max(self.eps, 3e-13),
                                                  nthreads=self.threads, periodicity=2 * math.pi,
-                                                 fft_order=False)
+                                                 fft_order=False, sigma_min=sigma[0], sigma_max=sigma[1])
         return self._plans[kind]
 
     def type1(self, c, out=None):
