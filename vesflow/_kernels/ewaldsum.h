@@ -8,7 +8,8 @@
  *              A = 4 xi^3 e / sqrt(pi),  B = -2 e (3 E + (6 z + 4 z^3) / sqrt(pi)) / r^5
  * (ewald.pyx's module docstring).  Both functions are computed here without libm:
  * - exp(x), -700 <= x <= 0: x = n ln 2 + s (Cody-Waite, |s| <= ln 2 / 2), exp(s) by its Taylor
- *   polynomial of degree 12 (remainder < 2e-16), 2^n from the exponent bits;
+ *   polynomial of degree 12 (remainder < 2e-16; its even and odd parts as two short chains),
+ *   2^n from the exponent bits; the erfcx polynomial split likewise into four (Estrin);
  * - erfcx(z), z >= 0: (1 + z) erfcx(z) is a smooth function of t = (z - K)/(z + K) on [-1, 1]
  *   (Weideman 1994's variable), interpolated at 21 Chebyshev points (K = 3.5; relative error
  *   of erfcx below 6e-15 for every z >= 0, measured against scipy.special.erfcx; the
@@ -38,50 +39,60 @@ VF_AI double vf_exp_nonpos(double x)
     kd -= shift;
     double s = x - kd * 6.93147180369123816490e-01;      /* ln 2 high part (exact product) */
     s = s - kd * 1.90821492927058770002e-10;             /* ln 2 low part */
-    double p = 2.08767569878680989792e-09;               /* 1/12! */
-    p = p * s + 2.50521083854417187751e-08;
-    p = p * s + 2.75573192239858906526e-07;
-    p = p * s + 2.75573192239858906526e-06;
-    p = p * s + 2.48015873015873015873e-05;
-    p = p * s + 1.98412698412698412698e-04;
-    p = p * s + 1.38888888888888888889e-03;
-    p = p * s + 8.33333333333333333333e-03;
-    p = p * s + 4.16666666666666666667e-02;
-    p = p * s + 1.66666666666666666667e-01;
-    p = p * s + 0.5;
-    p = p * s + 1.0;
-    p = p * s + 1.0;
+    /* exp(s) = E(s^2) + s O(s^2) (two short chains instead of 12 dependent steps) */
+    const double s2 = s * s;
+    double pe = 2.08767569878680989792e-09;              /* 1/12! */
+    pe = pe * s2 + 2.75573192239858906526e-07;           /* 1/10! */
+    pe = pe * s2 + 2.48015873015873015873e-05;           /* 1/8! */
+    pe = pe * s2 + 1.38888888888888888889e-03;           /* 1/6! */
+    pe = pe * s2 + 4.16666666666666666667e-02;           /* 1/4! */
+    pe = pe * s2 + 0.5;
+    pe = pe * s2 + 1.0;
+    double po = 2.50521083854417187751e-08;              /* 1/11! */
+    po = po * s2 + 2.75573192239858906526e-06;           /* 1/9! */
+    po = po * s2 + 1.98412698412698412698e-04;           /* 1/7! */
+    po = po * s2 + 8.33333333333333333333e-03;           /* 1/5! */
+    po = po * s2 + 1.66666666666666666667e-01;           /* 1/3! */
+    po = po * s2 + 1.0;
+    const double p = pe + s * po;
     int64_t eb = (ki - (int64_t)0x4338000000000000LL + 1023) << 52;
     double sc;
     memcpy(&sc, &eb, sizeof sc);
     return p * sc;
 }
 
-/* (1 + z) erfcx(z) as a polynomial in t = (z - K)/(z + K) */
+/* (1 + z) erfcx(z) as a polynomial in t = (z - K)/(z + K): coefficients VF_EC<k> of t^k,
+ * evaluated as P0(t^4) + t P1(t^4) + t^2 (P2(t^4) + t P3(t^4)) (Estrin's split: four short
+ * Horner chains instead of one of 20 dependent multiply-adds) */
+#define VF_EC0 6.98821450240024400e-01
+#define VF_EC1 -2.14637112485262460e-01
+#define VF_EC2 1.11287442633976441e-01
+#define VF_EC3 -3.19097148006058304e-02
+#define VF_EC4 -1.03308956245707559e-02
+#define VF_EC5 2.12731962116369695e-02
+#define VF_EC6 -1.59232824563491603e-02
+#define VF_EC7 7.42854725937949680e-03
+#define VF_EC8 -1.97381737697253706e-03
+#define VF_EC9 -6.86235935480495265e-06
+#define VF_EC10 2.28149766349759097e-04
+#define VF_EC11 -6.30728965800816433e-05
+#define VF_EC12 -1.47181519522821816e-05
+#define VF_EC13 1.12735891245147664e-05
+#define VF_EC14 4.05243606323810795e-07
+#define VF_EC15 -1.66476372306377834e-06
+#define VF_EC16 7.25760403346465183e-08
+#define VF_EC17 2.21318209186002785e-07
+#define VF_EC18 -1.66417145283581546e-08
+#define VF_EC19 -1.92989490664923047e-08
+#define VF_EC20 1.56543981576414162e-09
 VF_AI double vf_erfcx_poly(double t)
 {
-    double p = 1.56543981576414162e-09;
-    p = p * t - 1.92989490664923047e-08;
-    p = p * t - 1.66417145283581546e-08;
-    p = p * t + 2.21318209186002785e-07;
-    p = p * t + 7.25760403346465183e-08;
-    p = p * t - 1.66476372306377834e-06;
-    p = p * t + 4.05243606323810795e-07;
-    p = p * t + 1.12735891245147664e-05;
-    p = p * t - 1.47181519522821816e-05;
-    p = p * t - 6.30728965800816433e-05;
-    p = p * t + 2.28149766349759097e-04;
-    p = p * t - 6.86235935480495265e-06;
-    p = p * t - 1.97381737697253706e-03;
-    p = p * t + 7.42854725937949680e-03;
-    p = p * t - 1.59232824563491603e-02;
-    p = p * t + 2.12731962116369695e-02;
-    p = p * t - 1.03308956245707559e-02;
-    p = p * t - 3.19097148006058304e-02;
-    p = p * t + 1.11287442633976441e-01;
-    p = p * t - 2.14637112485262460e-01;
-    p = p * t + 6.98821450240024400e-01;
-    return p;
+    const double t2 = t * t, u = t2 * t2;
+    const double p0 = (((((VF_EC20 * u + VF_EC16) * u + VF_EC12) * u + VF_EC8) * u + VF_EC4) * u + VF_EC0);
+    const double p1 = ((((VF_EC17 * u + VF_EC13) * u + VF_EC9) * u + VF_EC5) * u + VF_EC1);
+    const double p2 = ((((VF_EC18 * u + VF_EC14) * u + VF_EC10) * u + VF_EC6) * u + VF_EC2);
+    const double p3 = ((((VF_EC19 * u + VF_EC15) * u + VF_EC11) * u + VF_EC7) * u + VF_EC3);
+    return (p0 + t * p1) + t2 * (p2 + t * p3);
 }
 
 /* r = sqrt(rr) > 0: *ri = 1/r, *e = exp(-z^2), *E = erfcx(z), z = xi r (one division) */
@@ -215,6 +226,7 @@ VF_REAL_VARIANT(vf_ewald_real_sd_mi, 1, 1, 1)
 #include <immintrin.h>
 #define VF_HAVE_AVX512_PATH 1
 #define VF_AVX512 __attribute__((target("avx512f,avx512dq,fma")))
+#define VF_S(c) _mm512_set1_pd(c)
 
 /* exp(x), -700 <= x <= 0, 8 lanes (vf_exp_nonpos) */
 VF_AVX512 static inline __m512d vf_exp8(__m512d x)
@@ -226,38 +238,46 @@ VF_AVX512 static inline __m512d vf_exp8(__m512d x)
     kd = _mm512_sub_pd(kd, shift);
     __m512d s = _mm512_fnmadd_pd(kd, _mm512_set1_pd(6.93147180369123816490e-01), x);
     s = _mm512_fnmadd_pd(kd, _mm512_set1_pd(1.90821492927058770002e-10), s);
-    __m512d p = _mm512_set1_pd(2.08767569878680989792e-09);
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(2.50521083854417187751e-08));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(2.75573192239858906526e-07));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(2.75573192239858906526e-06));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(2.48015873015873015873e-05));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(1.98412698412698412698e-04));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(1.38888888888888888889e-03));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(8.33333333333333333333e-03));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(4.16666666666666666667e-02));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(1.66666666666666666667e-01));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(0.5));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(1.0));
-    p = _mm512_fmadd_pd(p, s, _mm512_set1_pd(1.0));
+    const __m512d s2 = _mm512_mul_pd(s, s);
+    __m512d pe = _mm512_fmadd_pd(VF_S(2.08767569878680989792e-09), s2, VF_S(2.75573192239858906526e-07));
+    __m512d po = _mm512_fmadd_pd(VF_S(2.50521083854417187751e-08), s2, VF_S(2.75573192239858906526e-06));
+    pe = _mm512_fmadd_pd(pe, s2, VF_S(2.48015873015873015873e-05));
+    po = _mm512_fmadd_pd(po, s2, VF_S(1.98412698412698412698e-04));
+    pe = _mm512_fmadd_pd(pe, s2, VF_S(1.38888888888888888889e-03));
+    po = _mm512_fmadd_pd(po, s2, VF_S(8.33333333333333333333e-03));
+    pe = _mm512_fmadd_pd(pe, s2, VF_S(4.16666666666666666667e-02));
+    po = _mm512_fmadd_pd(po, s2, VF_S(1.66666666666666666667e-01));
+    pe = _mm512_fmadd_pd(pe, s2, VF_S(0.5));
+    po = _mm512_fmadd_pd(po, s2, VF_S(1.0));
+    pe = _mm512_fmadd_pd(pe, s2, VF_S(1.0));
+    const __m512d p = _mm512_fmadd_pd(s, po, pe);
     const __m512i eb = _mm512_slli_epi64(
         _mm512_add_epi64(ki, _mm512_set1_epi64(-(int64_t)0x4338000000000000LL + 1023)), 52);
     return _mm512_mul_pd(p, _mm512_castsi512_pd(eb));
 }
 
-/* (1 + z) erfcx(z) as the polynomial in t of vf_erfcx_poly, 8 lanes */
+/* (1 + z) erfcx(z) as the polynomial in t of vf_erfcx_poly (the same split), 8 lanes */
 VF_AVX512 static inline __m512d vf_erfcx_poly8(__m512d t)
 {
-    static const double c[21] = {
-        1.56543981576414162e-09, -1.92989490664923047e-08, -1.66417145283581546e-08, 2.21318209186002785e-07,
-        7.25760403346465183e-08, -1.66476372306377834e-06, 4.05243606323810795e-07, 1.12735891245147664e-05,
-        -1.47181519522821816e-05, -6.30728965800816433e-05, 2.28149766349759097e-04, -6.86235935480495265e-06,
-        -1.97381737697253706e-03, 7.42854725937949680e-03, -1.59232824563491603e-02, 2.12731962116369695e-02,
-        -1.03308956245707559e-02, -3.19097148006058304e-02, 1.11287442633976441e-01, -2.14637112485262460e-01,
-        6.98821450240024400e-01};
-    __m512d p = _mm512_set1_pd(c[0]);
-    for (int k = 1; k < 21; ++k)
-        p = _mm512_fmadd_pd(p, t, _mm512_set1_pd(c[k]));
-    return p;
+    const __m512d t2 = _mm512_mul_pd(t, t), u = _mm512_mul_pd(t2, t2);
+    __m512d p0 = _mm512_fmadd_pd(VF_S(VF_EC20), u, VF_S(VF_EC16));
+    __m512d p1 = _mm512_fmadd_pd(VF_S(VF_EC17), u, VF_S(VF_EC13));
+    __m512d p2 = _mm512_fmadd_pd(VF_S(VF_EC18), u, VF_S(VF_EC14));
+    __m512d p3 = _mm512_fmadd_pd(VF_S(VF_EC19), u, VF_S(VF_EC15));
+    p0 = _mm512_fmadd_pd(p0, u, VF_S(VF_EC12));
+    p1 = _mm512_fmadd_pd(p1, u, VF_S(VF_EC9));
+    p2 = _mm512_fmadd_pd(p2, u, VF_S(VF_EC10));
+    p3 = _mm512_fmadd_pd(p3, u, VF_S(VF_EC11));
+    p0 = _mm512_fmadd_pd(p0, u, VF_S(VF_EC8));
+    p1 = _mm512_fmadd_pd(p1, u, VF_S(VF_EC5));
+    p2 = _mm512_fmadd_pd(p2, u, VF_S(VF_EC6));
+    p3 = _mm512_fmadd_pd(p3, u, VF_S(VF_EC7));
+    p0 = _mm512_fmadd_pd(p0, u, VF_S(VF_EC4));
+    p1 = _mm512_fmadd_pd(p1, u, VF_S(VF_EC1));
+    p2 = _mm512_fmadd_pd(p2, u, VF_S(VF_EC2));
+    p3 = _mm512_fmadd_pd(p3, u, VF_S(VF_EC3));
+    p0 = _mm512_fmadd_pd(p0, u, VF_S(VF_EC0));
+    return _mm512_fmadd_pd(t2, _mm512_fmadd_pd(t, p3, p2), _mm512_fmadd_pd(t, p1, p0));
 }
 
 /* 1/sqrt(a) and 1/a, a > 0: the 14-bit estimates of AVX-512F refined by two Newton steps
