@@ -170,28 +170,42 @@ def test_smooth_part_is_full_minus_real_and_accurate_at_small_r(rng):
     assert np.allclose(at0, 4 * xi / SQPI * f[:20] / (8 * np.pi), rtol=1e-14, atol=0)
 
 
-@pytest.mark.parametrize("xi, rc", [(2.3, 1.9), (5.0, 1.1), (1.0, 6.0)])
-def test_tabulated_real_space_coefficients(xi, rc):
+@pytest.mark.parametrize("xi, rc", [(2.3, 1.9), (5.0, 1.1), (1.0, 6.0), (4.0, 1.6)])
+def test_real_space_coefficients_without_libm(xi, rc):
+    """erfc and exp of the vectorized real-space kernel (ewaldsum.h) against scipy, on [0, rc]
+    and beyond (z up to 6.4), relative to each function's largest value (and erfc relative)."""
     r = np.linspace(1e-9, rc, 20001)
     z, sq = xi * r, SQPI
     e, ec = np.exp(-z * z), erfc(z)
     ref = np.stack([ec - 2 * z * e / sq, ec + 2 * z * e / sq, 4 * xi ** 3 * e / sq,
                     -2 * (3 * ec + (6 * z + 4 * z ** 3) * e / sq)], 1)
-    err = np.abs(ek.tabulated(xi, rc, r) - ref).max(axis=0) / np.abs(ref).max(axis=0)
+    got = ek.real_coefficients(xi, r)
+    err = np.abs(got - ref).max(axis=0) / np.abs(ref).max(axis=0)
     assert np.all(err < 1e-13), err
+    # erfc itself, relatively, down to 1e-18: (a1 + a2) / 2
+    assert np.max(np.abs(0.5 * (got[:, 0] + got[:, 1]) / ec - 1)) < 1e-13
 
 
-@pytest.mark.parametrize("xi, rc", [(2.3, 1.9), (5.0, 1.1), (1.0, 6.0)])
-def test_tabulated_own_vesicle_smooth_part(rng, xi, rc):
-    """The own-vesicle pairs inside rc use G^F, T^F tabulated in r^2: as the series / closed forms."""
-    n = 5000
-    d = rng.standard_normal((n, 3))
-    r = d / np.linalg.norm(d, axis=1)[:, None] * (rc * rng.uniform(0, 1, n) ** (1 / 3))[:, None]
-    r[:20] *= 1e-9
-    r[20] = 0.0
-    f, nw, g = rng.standard_normal((3, n, 3))
-    ref = ek.smooth_part(r, f, nw, g, xi)
-    assert np.abs(ek.smooth_part_tabulated(r, f, nw, g, xi, rc) - ref).max() < 1e-13 * np.abs(ref).max()
+@pytest.mark.parametrize("period", [None, 1.7, 6.0])
+def test_avx512_and_portable_real_space_loops_agree(rng, period):
+    """The real-space sum by the AVX-512 loop and by the portable vectorized loop (ewaldsum.h):
+    single + double layer, own vesicles, a coincident pair, free space and periodic boxes with
+    (1.7: fewer than 5 cells per axis) and without per-pair minimum images."""
+    L = 6.0 if period is None else period
+    src, sid, trg, tid = clusters(rng, 8, 40, L, 0.3 * min(L, 2.0), 10, free_trg=5)
+    trg[0] = src[3]                                    # coincident with a source of another vesicle
+    f, nw, g = rng.standard_normal((3, src.shape[0], 3))
+    es = ewald.EwaldSum(src, sid, trg, tid, tol=1e-8, period=period, double_layer=True)
+    try:
+        have = ek.set_vector_path(True)
+        a = es.real_space(f, nw, g)
+        ek.set_vector_path(False)
+        b = es.real_space(f, nw, g)
+    finally:
+        ek.set_vector_path(True)
+    if not have:
+        pytest.skip("no AVX-512 on this CPU")
+    assert rel_err(a, b) < 1e-13
 
 
 # ------------------------------------------------------------------ periodic

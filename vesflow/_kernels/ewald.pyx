@@ -12,8 +12,8 @@ Tornberg 2010, eq. 2.5; af Klinteberg and Tornberg 2014 for the stresslet)::
           A = 4 xi^3 e / sqrt(pi)
           B = -2 (3 erfc(z)/r^5 + (6 xi / r^4 + 4 xi^3 / r^2) e / sqrt(pi))
 
-and the smooth parts ``G^F = G - G^R``, ``T^F = T - T^R`` (needed at short range for the
-excluded own-vesicle pairs, below)::
+and the smooth parts ``G^F = G - G^R``, ``T^F = T - T^R`` (the own-vesicle terms below are
+``-G^F`` inside rc; :func:`smooth_part` evaluates them directly, for the tests)::
 
     G^F = (erf(z)/r + 2 xi e/sqrt(pi)) I + a r r^T,       a = (erf(z)/r - 2 xi e/sqrt(pi)) / r^2
     T^F = -A (delta r + ...) + b r r r,                   b = -6 erf(z)/r^5 - (B + 6 erfc(z)/r^5)
@@ -24,25 +24,47 @@ z^(2n-2)/n!``, ``b = -(16 xi^5/sqrt(pi)) sum_{m>=2} (-1)^m m(m-1)/((2m+1) m!) z^
 ``G^F(0) = 4 xi / sqrt(pi) I``, ``T^F(0) = 0``.
 
 :class:`RealSpace` sums, for every target ``t``, over all sources ``s`` and periodic images
-``n`` (periodic) or the sources (free space), LEAVING OUT the sources of the target's own
-vesicle at their given (unwrapped) position::
+``n`` (periodic) or the sources (free space) inside the cutoff, the target's own vesicle
+included, and subtracts the own vesicle's full kernel at the given (unwrapped) positions::
 
-    sum_{(s, n) != (own, 0), |r| < rc} G^R(r) f_s  -  sum_{s own} G^F_rc(x_t - y_s) f_s
+    sum_{(s, n), 0 < |r| < rc} G^R(r) f_s  -  sum_{s own, r != 0} G(x_t - y_s) f_s  -  sum_{r = 0} G^F(0) f_s
 
-with ``G^F_rc = G^F`` for ``|r| < rc`` and ``G`` beyond (and the same for ``T``), so that the
-Fourier part over ALL sources plus this gives the Ewald sum without the own vesicle.  A
-coincident pair (``r = 0``) of different vesicles is skipped like the direct sum skips it,
-i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic: minimum image
-(the image shift of each neighbour cell; per pair only along an axis of fewer than 5 cells),
-``rc < L/2`` per axis (the caller guarantees it).  Cell lists (cells of side >= rc / 2, sources
-and targets sorted by cell once per geometry) and an OpenMP ``prange`` over the cells holding
-targets; every output row ACCUMULATES (``out += ...``).
+(and the same for ``T``).  Inside rc the own terms are ``G^R - G = -G^F``, beyond it ``-G``
+(``G^R`` is below tol there), so that the Fourier part over ALL sources plus this gives the
+Ewald sum without the own vesicle.  A coincident pair (``r = 0``) is skipped like the direct
+sum skips it, i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic:
+minimum image (the image shift of each neighbour cell; per pair only along an axis of fewer
+than 5 cells), ``rc < L/2`` per axis (the caller guarantees it, so a pair inside rc is one
+image).  Cell lists (cells of side >= rc / 2, sources and targets sorted by cell once per
+geometry) and an OpenMP ``prange`` over the cells holding targets: the sources of a cell's
+125 neighbour cells are copied once into a buffer (structure of arrays, image shifts added)
+that every target of the cell sums in one vectorized loop (``ewaldsum.h``: erfc and exp
+without libm, out-of-cutoff pairs masked); the own-vesicle sums are the vectorized direct
+sums of ``pairsum.h``.  Every output row ACCUMULATES (``out += ...``).
 """
 import numpy as np
 
 from cython.parallel cimport prange
-from libc.math cimport sqrt, exp, erf, erfc, floor, nearbyint, M_PI
-cimport openmp
+from libc.math cimport sqrt, exp, erf, M_PI
+from libc.stdlib cimport malloc, free
+
+cdef extern from "ewaldsum.h" nogil:
+    enum: VF_BLOCK
+    void vf_ewald_real(const double* b, Py_ssize_t n, Py_ssize_t ld, const double* x, double xi, double rc2,
+                       const double* mL, const double* iL, int mi, int sl, int dl, double* o)
+    void vf_real_coefficients(double r, double xi, double* c)
+    int vf_real_path_avx512
+    int vf_pairsum_path(int avx512)
+    int vf_avx512_available()
+    void vf_stokeslet_range(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
+                            const double* x, double* o)
+    void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
+                            Py_ssize_t s1, const double* x, double* o)
+    void vf_stokeslet_targets(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
+                              const double* x, Py_ssize_t K, double* o)
+    void vf_stresslet_targets(const double* src, const double* nw, const double* g, Py_ssize_t s0,
+                              Py_ssize_t s1, const double* x, Py_ssize_t K, double* o)
+
 
 cdef double INV8PI = 1.0 / (8.0 * M_PI)
 cdef double SQPI = 1.7724538509055160273          # sqrt(pi)
@@ -53,102 +75,31 @@ cdef double _SERIES_Z = 0.2
 cdef long SUB = 2
 
 
-# ---------------------------------------------------------------------------------------
-# tabulated real-space coefficients: on [0, rc] cut into TAB_N intervals, the smooth functions
-#   a1 = erfc(z) - 2 z e / sqrt(pi)          (G^R: coefficient of I is a1 / r)
-#   a2 = erfc(z) + 2 z e / sqrt(pi)          (coefficient of r r^T is a2 / r^3)
-#   a3 = A = 4 xi^3 e / sqrt(pi)             (T^R)
-#   a4 = B r^5 = -2 (3 erfc(z) + (6 z + 4 z^3) e / sqrt(pi))
-# (z = xi r, e = exp(-z^2)) as polynomials of degree TAB_DEG in t in [-1, 1] per interval
-# (Chebyshev interpolation; error ~1e-16 relative, measured in tests/test_ewald.py): about
-# twice as fast as erfc and exp per pair.
-# ---------------------------------------------------------------------------------------
-DEF TAB_N = 64
-DEF TAB_DEG = 7
-DEF TAB_STRIDE = 4 * (TAB_DEG + 1)
+
+def set_vector_path(bint avx512):
+    """Use the AVX-512 real-space loop and own-vesicle range sums (True; only if the CPU has
+    AVX-512F/DQ) or the portable vectorized ones (False); returns whether AVX-512 is now used.
+    Default: AVX-512 where available (tests compare the two)."""
+    global vf_real_path_avx512
+    vf_real_path_avx512 = 1 if (avx512 and vf_avx512_available()) else 0
+    vf_pairsum_path(vf_real_path_avx512)
+    return bool(vf_real_path_avx512)
 
 
-def _table(double xi, double rc):
-    """Coefficients (TAB_N, 4, TAB_DEG + 1) of the tabulated functions, monomials in t."""
-    from scipy.special import erfc as _erfc
-    cheb = np.polynomial.chebyshev
-    nodes = np.cos(np.pi * (np.arange(TAB_DEG + 1) + 0.5) / (TAB_DEG + 1))
-    tab = np.empty((TAB_N, 4, TAB_DEG + 1))
-    h = rc / TAB_N
-    sq = np.sqrt(np.pi)
-    for k in range(TAB_N):
-        r = (k + 0.5 * (nodes + 1.0)) * h
-        z = xi * r
-        e = np.exp(-z * z)
-        ec = _erfc(z)
-        vals = (ec - 2 * z * e / sq, ec + 2 * z * e / sq, 4 * xi ** 3 * e / sq,
-                -2 * (3 * ec + (6 * z + 4 * z ** 3) * e / sq))
-        for j in range(4):
-            tab[k, j] = cheb.cheb2poly(cheb.chebfit(nodes, vals[j], TAB_DEG))
-    return tab
+set_vector_path(True)
 
 
-def tabulated(double xi, double rc, const double[::1] r):
-    """The four tabulated functions at radii r (<= rc), (n, 4) (tests)."""
-    tab_np = np.ascontiguousarray(_table(xi, rc))
-    cdef const double[:, :, ::1] tab = tab_np
+def real_coefficients(double xi, const double[::1] r):
+    """The real-space coefficients at radii r > 0 as the kernel computes them (ewaldsum.h),
+    (n, 4): ``erfc(z) -+ 2 z e / sqrt(pi)`` (G^R: ``/ r`` of I and ``/ r^3`` of r r^T),
+    ``A = 4 xi^3 e / sqrt(pi)`` and ``B r^5 = -2 (3 erfc(z) + (6 z + 4 z^3) e / sqrt(pi))`` (T^R),
+    ``z = xi r``, ``e = exp(-z^2)`` (tests)."""
     out = np.empty((r.shape[0], 4))
+    cdef double[:, ::1] o = out
     cdef Py_ssize_t i
-    cdef double v[4]
     for i in range(r.shape[0]):
-        _tab_eval(&tab[0, 0, 0], TAB_N / rc, r[i], 4, v)
-        out[i, 0] = v[0]; out[i, 1] = v[1]; out[i, 2] = v[2]; out[i, 3] = v[3]
+        vf_real_coefficients(r[i], xi, &o[i, 0])
     return out
-
-
-cdef inline void _tab_eval(const double* tab, double tinv, double r, int nf, double* v) noexcept nogil:
-    """v[0:nf] = tabulated functions 0..nf-1 (0, 1: single layer; 2, 3: double layer) at r,
-    or 2..3 when nf == -2."""
-    cdef double x = r * tinv
-    cdef long k = <long> x
-    cdef int j, d, j0 = 0, j1 = nf
-    if nf < 0:
-        j0 = 2
-        j1 = 4
-    if k >= TAB_N:
-        k = TAB_N - 1
-    cdef double t = 2.0 * (x - k) - 1.0, acc
-    cdef const double* c = tab + k * TAB_STRIDE
-    for j in range(j0, j1):
-        acc = c[j * (TAB_DEG + 1) + TAB_DEG]
-        for d in range(TAB_DEG - 1, -1, -1):
-            acc = acc * t + c[j * (TAB_DEG + 1) + d]
-        v[j] = acc
-
-
-cdef inline void _gr_tab(double r0, double r1, double r2, double rr, const double* tab, double tinv,
-                         const double* f, double* a) noexcept nogil:
-    """a[0:3] += G^R(r) f from the table (0 < r <= rc)."""
-    cdef double v[4]
-    cdef double r = sqrt(rr), ri = 1.0 / r
-    _tab_eval(tab, tinv, r, 2, v)
-    cdef double ci = v[0] * ri
-    cdef double cr = v[1] * ri * ri * ri * (r0 * f[0] + r1 * f[1] + r2 * f[2])
-    a[0] += ci * f[0] + cr * r0
-    a[1] += ci * f[1] + cr * r1
-    a[2] += ci * f[2] + cr * r2
-
-
-cdef inline void _tr_tab(double r0, double r1, double r2, double rr, const double* tab, double tinv,
-                         const double* nw, const double* g, double* a) noexcept nogil:
-    """a[0:3] += T^R(r):(g nw) from the table (0 < r <= rc)."""
-    cdef double v[4]
-    cdef double r = sqrt(rr), ri = 1.0 / r, ri2 = ri * ri
-    _tab_eval(tab, tinv, r, -2, v)
-    cdef double A = v[2]
-    cdef double B = v[3] * ri2 * ri2 * ri
-    cdef double rn = r0 * nw[0] + r1 * nw[1] + r2 * nw[2]
-    cdef double rg = r0 * g[0] + r1 * g[1] + r2 * g[2]
-    cdef double gn = g[0] * nw[0] + g[1] * nw[1] + g[2] * nw[2]
-    cdef double c = A * gn + B * rn * rg
-    a[0] += A * (g[0] * rn + nw[0] * rg) + c * r0
-    a[1] += A * (g[1] * rn + nw[1] * rg) + c * r1
-    a[2] += A * (g[2] * rn + nw[2] * rg) + c * r2
 
 
 cdef inline void _gf_coef(double rr, double xi, double* ci, double* ca) noexcept nogil:
@@ -230,86 +181,6 @@ cdef inline void _tf_minus(double r0, double r1, double r2, double rr, double xi
     _tf_apply(r0, r1, r2, A, b, nw, g, a)
 
 
-# the smooth parts of the own-vesicle pairs inside rc, tabulated in s = r^2 (ci, ca, A, b are
-# entire functions of s): TAB2_N Chebyshev pieces of degree TAB_DEG over [0, rc^2]
-DEF TAB2_N = 128
-
-
-def _table_smooth(double xi, double rc):
-    """Coefficients (TAB2_N, 4, TAB_DEG + 1) of ci, ca, A, b as polynomials in t per piece of s."""
-    cheb = np.polynomial.chebyshev
-    nodes = np.cos(np.pi * (np.arange(TAB_DEG + 1) + 0.5) / (TAB_DEG + 1))
-    tab = np.empty((TAB2_N, 4, TAB_DEG + 1))
-    vals = np.empty((4, TAB_DEG + 1))
-    cdef double h = rc * rc / TAB2_N, ci, ca, A, b
-    cdef int k, j
-    for k in range(TAB2_N):
-        for j in range(TAB_DEG + 1):
-            ss = (k + 0.5 * (nodes[j] + 1.0)) * h
-            _gf_coef(ss, xi, &ci, &ca)
-            _tf_coef(ss, xi, &A, &b)
-            vals[0, j], vals[1, j], vals[2, j], vals[3, j] = ci, ca, A, b
-        for j in range(4):
-            tab[k, j] = cheb.cheb2poly(cheb.chebfit(nodes, vals[j], TAB_DEG))
-    return tab
-
-
-cdef inline void _tab2_eval(const double* tab, double tinv, double s, int j0, int j1, double* v) noexcept nogil:
-    """v[j0:j1] = the tabulated smooth-part coefficients at s = r^2 <= rc^2."""
-    cdef double x = s * tinv
-    cdef long k = <long> x
-    cdef int j, d
-    if k >= TAB2_N:
-        k = TAB2_N - 1
-    cdef double t = 2.0 * (x - k) - 1.0, acc
-    cdef const double* c = tab + k * TAB_STRIDE
-    for j in range(j0, j1):
-        acc = c[j * (TAB_DEG + 1) + TAB_DEG]
-        for d in range(TAB_DEG - 1, -1, -1):
-            acc = acc * t + c[j * (TAB_DEG + 1) + d]
-        v[j] = acc
-
-
-def smooth_part_tabulated(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
-                          const double[:, ::1] g, double xi, double rc):
-    """As :func:`smooth_part` from the own-vesicle table (|r| < rc) (tests)."""
-    tab_np = np.ascontiguousarray(_table_smooth(xi, rc))
-    cdef const double[:, :, ::1] tab = tab_np
-    cdef Py_ssize_t k, n = r.shape[0]
-    out = np.zeros((n, 3))
-    cdef double[:, ::1] o = out
-    cdef double a[3]
-    cdef double v[4]
-    cdef double rr
-    for k in range(n):
-        a[0] = 0.0; a[1] = 0.0; a[2] = 0.0
-        rr = r[k, 0] ** 2 + r[k, 1] ** 2 + r[k, 2] ** 2
-        _tab2_eval(&tab[0, 0, 0], TAB2_N / (rc * rc), rr, 0, 4, v)
-        _gf_apply(r[k, 0], r[k, 1], r[k, 2], v[0], v[1], &f[k, 0], a)
-        _tf_apply(r[k, 0], r[k, 1], r[k, 2], v[2], v[3], &nw[k, 0], &g[k, 0], a)
-        o[k, 0] = -a[0] * INV8PI; o[k, 1] = -a[1] * INV8PI; o[k, 2] = -a[2] * INV8PI
-    return out
-
-
-cdef inline void _g_minus(double r0, double r1, double r2, double rr,
-                          const double* f, double* a) noexcept nogil:
-    """a[0:3] -= G(r) f (r != 0)."""
-    cdef double ri = 1.0 / sqrt(rr)
-    cdef double t = (r0 * f[0] + r1 * f[1] + r2 * f[2]) * ri * ri * ri
-    a[0] -= f[0] * ri + t * r0
-    a[1] -= f[1] * ri + t * r1
-    a[2] -= f[2] * ri + t * r2
-
-
-cdef inline void _t_minus(double r0, double r1, double r2, double rr,
-                          const double* nw, const double* g, double* a) noexcept nogil:
-    """a[0:3] -= T(r):(g nw) = +6 (r.nw)(r.g) r / r^5 (r != 0)."""
-    cdef double ri = 1.0 / sqrt(rr), ri2 = ri * ri
-    cdef double c = 6.0 * (r0 * nw[0] + r1 * nw[1] + r2 * nw[2]) * (r0 * g[0] + r1 * g[1] + r2 * g[2]) * ri2 * ri2 * ri
-    a[0] += c * r0
-    a[1] += c * r1
-    a[2] += c * r2
-
 
 def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, ::1] nw,
                 const double[:, ::1] g, double xi):
@@ -327,35 +198,63 @@ def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, 
     return out
 
 
-def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] psi,
+cdef inline double complex _unpack(const double complex* P, Py_ssize_t grid, Py_ssize_t c, Py_ssize_t at,
+                                   Py_ssize_t mirror) noexcept nogil:
+    """Transform of real component c from the packed pairs (grid: modes per pair; at, mirror:
+    the flat indices of k and -k): P_p = A + i B (p = c // 2), A at k is (P_p(k) + conj P_p(-k)) / 2,
+    B is (P_p(k) - conj P_p(-k)) / (2 i)."""
+    cdef const double complex* q = P + (c // 2) * grid
+    cdef double complex a = q[at], b = q[mirror].conjugate()
+    if c % 2 == 0:
+        return 0.5 * (a + b)
+    return -0.5j * (a - b)
+
+
+def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] psi,
                  const double[::1] k0, const double[::1] k1, const double[::1] k2,
-                 bint single, bint double, double scale, double complex[:, :, :, ::1] U):
+                 bint single, bint double, double scale, double complex[:, :, :, ::1] W):
     """Fourier-space multiplication of the Ewald sum (vesflow/layerpot/ewald.py), one pass:
 
         U_a = scale Psi [ (k^2 F_a - k_a (k.F)) + i (k^2 (2 (S k)_a + k_a tr S) - 2 k_a (k.S k)) ]
 
+    on real sources packed two to a transform and real results packed likewise (a real
+    function's transform is Hermitian, so A + i B separates at k and -k):
+
+    P: (ceil(m / 2), n0, n1, n2), the type-1 transforms of the m real source components in
+    pairs (c_0 + i c_1, c_2 + i c_3, ...): the single-layer F_0..2 first (if ``single``), then
+    the six components (00, 11, 22, 01, 02, 12) of S (if ``double``);
+    W: (2, n0, n1, n2) gets U_0 + i U_1 and U_2, so that the type-2 transform of W holds
+    u_0 + i u_1 and u_2.  The modes with an index -n/2 (no mirror -k on the grid) are set to
+    0: they are beyond k_max (docs/far_field.md).
     psi: (n0/2 + 1, n1/2 + 1, n2/2 + 1), Psi at |k| (Psi is even in each component of k);
     k0, k1, k2: the wave numbers of the modes (-n/2 .. n/2 - 1, times 2 pi / period).
-    F: (m, n0, n1, n2), the single-layer transforms F_0..2 first (if ``single``), then the
-    six components (00, 11, 22, 01, 02, 12) of S (if ``double``); U (3 or more, n0, n1, n2)
-    gets the result in its first 3 components; it may be F itself (every mode is read before
-    it is written).  OpenMP over the first axis.
+    OpenMP over the first axis.
     """
     cdef Py_ssize_t n0 = k0.shape[0], n1 = k1.shape[0], n2 = k2.shape[0]
     cdef Py_ssize_t i, j, l, o = 3 if single else 0
     cdef Py_ssize_t h0 = n0 // 2, h1 = n1 // 2, h2 = n2 // 2
+    cdef Py_ssize_t m = o + (6 if double else 0)
     if n0 % 2 or n1 % 2 or n2 % 2 or psi.shape[0] != h0 + 1 or psi.shape[1] != h1 + 1 or psi.shape[2] != h2 + 1:
         raise ValueError("even mode counts and psi of shape (n/2 + 1) per axis required")
-    if U.shape[0] < 3 or U.shape[1] != n0 or U.shape[2] != n1 or U.shape[3] != n2:
-        raise ValueError("U must have shape (3,) + psi.shape")
-    if F.shape[0] < o + (6 if double else 0) or F.shape[1] != n0 or F.shape[2] != n1 or F.shape[3] != n2:
-        raise ValueError("F has the wrong shape")
+    if W.shape[0] != 2 or W.shape[1] != n0 or W.shape[2] != n1 or W.shape[3] != n2:
+        raise ValueError("W must have shape (2,) + the mode grid")
+    if P.shape[0] != (m + 1) // 2 or P.shape[1] != n0 or P.shape[2] != n1 or P.shape[3] != n2:
+        raise ValueError(f"P must have shape ({(m + 1) // 2},) + the mode grid")
     cdef double a, b, c, kk, ps
     cdef double complex f0, f1, f2, kf, s00, s11, s22, s01, s02, s12, q0, q1, q2, tr, ksk, u0, u1, u2
+    cdef Py_ssize_t grid = n0 * n1 * n2, at, mr
+    cdef const double complex* pp = &P[0, 0, 0, 0]
+    cdef double complex* pw = &W[0, 0, 0, 0]
     with nogil:
         for i in prange(n0, schedule="static"):
             for j in range(n1):
                 for l in range(n2):
+                    at = (i * n1 + j) * n2 + l
+                    if i == 0 or j == 0 or l == 0:
+                        pw[at] = 0
+                        pw[grid + at] = 0
+                        continue
+                    mr = ((n0 - i) * n1 + (n1 - j)) * n2 + (n2 - l)
                     a = k0[i]
                     b = k1[j]
                     c = k2[l]
@@ -366,20 +265,20 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
                     u1 = 0
                     u2 = 0
                     if single:
-                        f0 = F[0, i, j, l]
-                        f1 = F[1, i, j, l]
-                        f2 = F[2, i, j, l]
+                        f0 = _unpack(pp, grid, 0, at, mr)
+                        f1 = _unpack(pp, grid, 1, at, mr)
+                        f2 = _unpack(pp, grid, 2, at, mr)
                         kf = a * f0 + b * f1 + c * f2
                         u0 = kk * f0 - a * kf
                         u1 = kk * f1 - b * kf
                         u2 = kk * f2 - c * kf
                     if double:
-                        s00 = F[o, i, j, l]
-                        s11 = F[o + 1, i, j, l]
-                        s22 = F[o + 2, i, j, l]
-                        s01 = F[o + 3, i, j, l]
-                        s02 = F[o + 4, i, j, l]
-                        s12 = F[o + 5, i, j, l]
+                        s00 = _unpack(pp, grid, o, at, mr)
+                        s11 = _unpack(pp, grid, o + 1, at, mr)
+                        s22 = _unpack(pp, grid, o + 2, at, mr)
+                        s01 = _unpack(pp, grid, o + 3, at, mr)
+                        s02 = _unpack(pp, grid, o + 4, at, mr)
+                        s12 = _unpack(pp, grid, o + 5, at, mr)
                         q0 = s00 * a + s01 * b + s02 * c
                         q1 = s01 * a + s11 * b + s12 * c
                         q2 = s02 * a + s12 * b + s22 * c
@@ -388,46 +287,33 @@ def kspace_apply(const double complex[:, :, :, ::1] F, const double[:, :, ::1] p
                         u0 = u0 + 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
                         u1 = u1 + 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
                         u2 = u2 + 1j * (kk * (2.0 * q2 + c * tr) - 2.0 * c * ksk)
-                    U[0, i, j, l] = u0 * ps
-                    U[1, i, j, l] = u1 * ps
-                    U[2, i, j, l] = u2 * ps
+                    pw[at] = (u0 + 1j * u1) * ps
+                    pw[grid + at] = u2 * ps
 
 
 # ---------------------------------------------------------------------------------------
 # The real-space sum with its cell structure built ONCE per geometry (a GMRES solve applies it
 # with new densities every iteration): sources and targets sorted by cell, sources stored
-# contiguously in cell order (wrapped and given positions, vesicle ids), the periodic image
-# shift of each neighbour cell computed per cell instead of a minimum image per pair.
+# contiguously in cell order (wrapped positions), the periodic image shift of each neighbour
+# cell computed per cell instead of a minimum image per pair.
 # ---------------------------------------------------------------------------------------
 ctypedef struct _Cells:
     long n[3]
     double L[3]
     bint periodic
-    bint mi[3]                # periodic axis with fewer than 2 SUB + 1 cells: minimum image per pair
+    bint mi_any
+    double mL[3]              # L on an axis of fewer than 2 SUB + 1 cells (minimum image per pair), else 0
+    double iL[3]
     double rc2
     double xi
     const double* ys          # wrapped source positions, cell order
-    const double* yu          # given (unwrapped) source positions, cell order
-    const long* yid           # source vesicle ids, cell order
     const long* cstart        # sources of cell c: cstart[c] .. cstart[c + 1]
     const long* tstart        # targets (cell order) of cell c: tstart[c] .. tstart[c + 1]
     const double* xw          # wrapped targets, cell order
-    const double* xu          # given targets, cell order
-    const long* tid
-    const long* tvi
     const long* torder        # original index of each cell-ordered target
-    const double* src         # given sources, id-sorted (own-vesicle loop)
-    const long* src_off
     const double* fc          # densities in cell order (NULL: layer absent)
     const double* nwc
     const double* gc
-    const double* f           # densities id-sorted
-    const double* nw
-    const double* g
-    const double* tab
-    double tinv
-    const double* tab2
-    double tinv2
 
 
 cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
@@ -438,17 +324,14 @@ cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
     cdef long cc[3]
     cdef long nb[125]
     cdef double sh[375]
-    cdef long nnb = 0, d0, d1, d2, e0, e1, e2, t, j, s, m, tv, tidv
-    cdef double a[3]
-    cdef double v[4]
-    cdef double x0, x1, x2, r0, r1, r2, rr, q0, q1, q2, s0, s1, s2
-    cdef double gf0 = 4.0 * b.xi / SQPI
+    cdef long nnb = 0, d0, d1, d2, e0, e1, e2, t, j, m, k, nc = 0, s
+    cdef double o[3]
     cdef bint do_sl = b.fc != NULL, do_dl = b.gc != NULL
     cc[0] = c0
     cc[1] = c1
     cc[2] = c2
     for j in range(3):
-        if b.periodic and b.mi[j]:
+        if b.periodic and b.mL[j] != 0.0:
             lo[j] = 0
             hi[j] = b.n[j] - 1
         elif b.periodic:
@@ -464,83 +347,58 @@ cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
             for d2 in range(lo[2], hi[2] + 1):
                 e2 = (d2 + b.n[2]) % b.n[2]
                 nb[nnb] = (e0 * b.n[1] + e1) * b.n[2] + e2
-                # image of the neighbour cell next to cell c: source + shift
+                nc += b.cstart[nb[nnb] + 1] - b.cstart[nb[nnb]]
+                # the image of the neighbour cell next to cell c: source + shift
                 sh[3 * nnb] = b.L[0] * ((d0 - e0) // b.n[0]) if b.periodic else 0.0
                 sh[3 * nnb + 1] = b.L[1] * ((d1 - e1) // b.n[1]) if b.periodic else 0.0
                 sh[3 * nnb + 2] = b.L[2] * ((d2 - e2) // b.n[2]) if b.periodic else 0.0
                 nnb += 1
-    for t in range(b.tstart[c], b.tstart[c + 1]):
-        a[0] = 0.0
-        a[1] = 0.0
-        a[2] = 0.0
-        x0 = b.xw[3 * t]
-        x1 = b.xw[3 * t + 1]
-        x2 = b.xw[3 * t + 2]
-        tidv = b.tid[t]
-        tv = b.tvi[t]
+    cdef long ncol = 3 + (3 if do_sl else 0) + (6 if do_dl else 0)
+    cdef long ld = (nc + VF_BLOCK - 1) // VF_BLOCK * VF_BLOCK, i
+    cdef double* buf = NULL
+    cdef double* col
+    if nc > 0:
+        buf = <double*> malloc(ld * ncol * sizeof(double))
+        # the candidates in structure-of-arrays columns of length ld: y + shift, f, nw, g
+        k = 0
         for m in range(nnb):
-            s0 = x0 - sh[3 * m]
-            s1 = x1 - sh[3 * m + 1]
-            s2 = x2 - sh[3 * m + 2]
             for j in range(b.cstart[nb[m]], b.cstart[nb[m] + 1]):
-                r0 = s0 - b.ys[3 * j]
-                r1 = s1 - b.ys[3 * j + 1]
-                r2 = s2 - b.ys[3 * j + 2]
-                if b.mi[0]:
-                    r0 = r0 - b.L[0] * nearbyint(r0 / b.L[0])
-                if b.mi[1]:
-                    r1 = r1 - b.L[1] * nearbyint(r1 / b.L[1])
-                if b.mi[2]:
-                    r2 = r2 - b.L[2] * nearbyint(r2 / b.L[2])
-                rr = r0 * r0 + r1 * r1 + r2 * r2
-                if rr >= b.rc2:
-                    continue
-                if tv >= 0 and b.yid[j] == tidv:
-                    # own vesicle at its given position: done in the own loop below
-                    q0 = b.xu[3 * t] - b.yu[3 * j]
-                    q1 = b.xu[3 * t + 1] - b.yu[3 * j + 1]
-                    q2 = b.xu[3 * t + 2] - b.yu[3 * j + 2]
-                    if q0 * q0 + q1 * q1 + q2 * q2 < b.rc2:
-                        continue
-                if rr == 0.0:
-                    if do_sl:
-                        a[0] -= gf0 * b.fc[3 * j]
-                        a[1] -= gf0 * b.fc[3 * j + 1]
-                        a[2] -= gf0 * b.fc[3 * j + 2]
-                    continue
+                buf[k] = b.ys[3 * j] + sh[3 * m]
+                buf[ld + k] = b.ys[3 * j + 1] + sh[3 * m + 1]
+                buf[2 * ld + k] = b.ys[3 * j + 2] + sh[3 * m + 2]
+                col = buf + 3 * ld
                 if do_sl:
-                    _gr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.fc + 3 * j, a)
+                    col[k] = b.fc[3 * j]
+                    col[ld + k] = b.fc[3 * j + 1]
+                    col[2 * ld + k] = b.fc[3 * j + 2]
+                    col = col + 3 * ld
                 if do_dl:
-                    _tr_tab(r0, r1, r2, rr, b.tab, b.tinv, b.nwc + 3 * j, b.gc + 3 * j, a)
-        if tv >= 0:
-            x0 = b.xu[3 * t]
-            x1 = b.xu[3 * t + 1]
-            x2 = b.xu[3 * t + 2]
-            for s in range(b.src_off[tv], b.src_off[tv + 1]):
-                q0 = x0 - b.src[3 * s]
-                q1 = x1 - b.src[3 * s + 1]
-                q2 = x2 - b.src[3 * s + 2]
-                rr = q0 * q0 + q1 * q1 + q2 * q2
-                if rr < b.rc2:
-                    _tab2_eval(b.tab2, b.tinv2, rr, 0 if do_sl else 2, 4 if do_dl else 2, v)
-                    if do_sl:
-                        _gf_apply(q0, q1, q2, v[0], v[1], b.f + 3 * s, a)
-                    if do_dl:
-                        _tf_apply(q0, q1, q2, v[2], v[3], b.nw + 3 * s, b.g + 3 * s, a)
-                else:
-                    if do_sl:
-                        _g_minus(q0, q1, q2, rr, b.f + 3 * s, a)
-                    if do_dl:
-                        _t_minus(q0, q1, q2, rr, b.nw + 3 * s, b.g + 3 * s, a)
+                    col[k] = b.nwc[3 * j]
+                    col[ld + k] = b.nwc[3 * j + 1]
+                    col[2 * ld + k] = b.nwc[3 * j + 2]
+                    col[3 * ld + k] = b.gc[3 * j]
+                    col[4 * ld + k] = b.gc[3 * j + 1]
+                    col[5 * ld + k] = b.gc[3 * j + 2]
+                k += 1
+        for j in range(ncol):                    # the padding rows: read (masked), never summed
+            for i in range(nc, ld):
+                buf[j * ld + i] = 0.0
+    for t in range(b.tstart[c], b.tstart[c + 1]):
+        o[0] = 0.0
+        o[1] = 0.0
+        o[2] = 0.0
+        if nc > 0:
+            vf_ewald_real(buf, nc, ld, b.xw + 3 * t, b.xi, b.rc2, b.mL, b.iL, b.mi_any, do_sl, do_dl, o)
         s = b.torder[t]
-        out[3 * s] += a[0] * INV8PI
-        out[3 * s + 1] += a[1] * INV8PI
-        out[3 * s + 2] += a[2] * INV8PI
+        out[3 * s] += o[0]
+        out[3 * s + 1] += o[1]
+        out[3 * s + 2] += o[2]
+    free(buf)
 
 
 class RealSpace:
-    """The real-space sum (module docstring) for a fixed geometry: the cell lists, sorted
-    points and tables are built once here, :meth:`apply` takes the densities.
+    """The real-space sum (module docstring) for a fixed geometry: the cell lists and sorted
+    points are built once here, :meth:`apply` takes the densities.
 
     src (S, 3) SORTED by vesicle id, vesicle v's sources ``src_off[v] .. src_off[v+1]``,
     src_id (S,); trg (T, 3), trg_id (T,), trg_vi (T,): index v of the target's own vesicle or
@@ -586,17 +444,18 @@ class RealSpace:
         self.tstart[1:] = np.cumsum(np.bincount(tkey, minlength=ncells))
         self.tcells = np.flatnonzero(np.diff(self.tstart)).astype(np.int64)   # cells holding targets
         self.ys = np.ascontiguousarray(sw[sorder])
-        self.yu = np.ascontiguousarray(src_np[sorder])
-        self.yid = np.ascontiguousarray(np.asarray(src_id, dtype=np.int64)[sorder])
         self.xw = np.ascontiguousarray(tw[torder])
-        self.xu = np.ascontiguousarray(trg_np[torder])
-        self.tid = np.ascontiguousarray(np.asarray(trg_id, dtype=np.int64)[torder])
-        self.tvi = np.ascontiguousarray(np.asarray(trg_vi, dtype=np.int64)[torder])
+        # the targets with an own vesicle grouped by it (own-vesicle sums): original indices
+        # oidx, given positions xo, vesicle v's at ostart[v] .. ostart[v + 1]
+        vi = np.asarray(trg_vi, dtype=np.int64).reshape(-1)
+        nv = len(src_off) - 1
+        self.oidx = np.ascontiguousarray(np.flatnonzero(vi >= 0)[np.argsort(vi[vi >= 0], kind="stable")], dtype=np.int64)
+        self.xo = np.ascontiguousarray(trg_np[self.oidx]).reshape(-1, 3)
+        self.ostart = np.zeros(nv + 1, dtype=np.int64)
+        self.ostart[1:] = np.cumsum(np.bincount(vi[vi >= 0], minlength=nv))
         self.torder = np.ascontiguousarray(torder, dtype=np.int64)
         self.src = src_np
         self.src_off = np.ascontiguousarray(src_off, dtype=np.int64)
-        self.tab = np.ascontiguousarray(_table(xi, rc))
-        self.tab2 = np.ascontiguousarray(_table_smooth(xi, rc))
 
     def apply(self, f, nw, g, out):
         """out (T, 3) += the real-space sum, 1/(8 pi) included; f (S, 3) or (0, 3): single-layer
@@ -620,44 +479,60 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
     cdef double[:, ::1] fc = np.ascontiguousarray(np.asarray(f)[sorder]) if do_sl else None
     cdef double[:, ::1] nwc = np.ascontiguousarray(np.asarray(nw)[sorder]) if do_dl else None
     cdef double[:, ::1] gc = np.ascontiguousarray(np.asarray(g)[sorder]) if do_dl else None
-    cdef double[:, ::1] ys = rs.ys, yu = rs.yu, xw = rs.xw, xu = rs.xu, src = rs.src
-    cdef long[::1] yid = rs.yid, cstart = rs.cstart, tstart = rs.tstart, tid = rs.tid, tvi = rs.tvi
-    cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells
-    cdef double[:, :, ::1] tab = rs.tab, tab2 = rs.tab2
+    cdef double[:, ::1] ys = rs.ys, xw = rs.xw, xo = rs.xo, src = rs.src
+    cdef long[::1] cstart = rs.cstart, tstart = rs.tstart
+    cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells, ostart = rs.ostart
     cdef _Cells b
     cdef int j
+    b.mi_any = False
     for j in range(3):
         b.n[j] = rs.ncell[j]
         b.L[j] = rs.length[j]
-        b.mi[j] = rs.periodic and rs.ncell[j] < 2 * SUB + 1
+        b.mL[j] = rs.length[j] if (rs.periodic and rs.ncell[j] < 2 * SUB + 1) else 0.0
+        b.iL[j] = 1.0 / rs.length[j] if b.mL[j] != 0.0 else 0.0
+        b.mi_any = b.mi_any or b.mL[j] != 0.0
     b.periodic = rs.periodic
     b.rc2 = rs.rc * rs.rc
     b.xi = rs.xi
     b.ys = &ys[0, 0]
-    b.yu = &yu[0, 0]
-    b.yid = &yid[0]
     b.cstart = &cstart[0]
     b.tstart = &tstart[0]
     b.xw = &xw[0, 0]
-    b.xu = &xu[0, 0]
-    b.tid = &tid[0]
-    b.tvi = &tvi[0]
     b.torder = &torder[0]
-    b.src = &src[0, 0]
-    b.src_off = &src_off[0]
     b.fc = &fc[0, 0] if do_sl else NULL
     b.nwc = &nwc[0, 0] if do_dl else NULL
     b.gc = &gc[0, 0] if do_dl else NULL
-    b.f = &f[0, 0] if do_sl else NULL
-    b.nw = &nw[0, 0] if do_dl else NULL
-    b.g = &g[0, 0] if do_dl else NULL
-    b.tab = &tab[0, 0, 0]
-    b.tinv = TAB_N / rs.rc
-    b.tab2 = &tab2[0, 0, 0]
-    b.tinv2 = TAB2_N / (rs.rc * rs.rc)
     cdef double* po = &out[0, 0]
     cdef const long* pc = &tcells[0]
     cdef Py_ssize_t k, nc = tcells.shape[0]
     with nogil:
         for k in prange(nc, schedule="dynamic", chunksize=8):
             _cell_targets(&b, pc[k], po)
+    # minus each vesicle's full kernel at its own targets (r = 0 skipped), the targets of a
+    # vesicle 4 at a time against its sources (pairsum.h)
+    own = np.zeros((xo.shape[0], 3))
+    cdef double[:, ::1] ow = own
+    cdef Py_ssize_t v, nv = ostart.shape[0] - 1
+    cdef const double* pf = &f[0, 0] if do_sl else NULL
+    cdef const double* pn = &nw[0, 0] if do_dl else NULL
+    cdef const double* pg = &g[0, 0] if do_dl else NULL
+    if xo.shape[0] > 0:
+        with nogil:
+            for v in prange(nv, schedule="dynamic"):
+                if ostart[v + 1] > ostart[v]:
+                    if do_sl:
+                        vf_stokeslet_targets(&src[0, 0], pf, src_off[v], src_off[v + 1], &xo[ostart[v], 0],
+                                             ostart[v + 1] - ostart[v], &ow[ostart[v], 0])
+                    if do_dl:
+                        vf_stresslet_targets(&src[0, 0], pn, pg, src_off[v], src_off[v + 1], &xo[ostart[v], 0],
+                                             ostart[v + 1] - ostart[v], &ow[ostart[v], 0])
+        _scatter_sub(out, rs.oidx, own)
+
+
+def _scatter_sub(double[:, ::1] out, const long[::1] idx, const double[:, ::1] val):
+    """out[idx[k]] -= val[k] (distinct idx)."""
+    cdef Py_ssize_t k
+    for k in range(idx.shape[0]):
+        out[idx[k], 0] -= val[k, 0]
+        out[idx[k], 1] -= val[k, 1]
+        out[idx[k], 2] -= val[k, 2]

@@ -306,9 +306,9 @@ class LayerPotentials:
         line = blk[:, 1:]
         v, rows = pairs[:, 1], info["rows"]
         # on-surface value at the projection: the self potential of vesicle v, one-sided for D
-        u0 = np.einsum("pc,pkc->pk", info["basis"], u_self[rows])
+        u0 = _rows_times_vesicle(info["basis"], u_self, rows)
         if gq is not None:
-            g0 = np.einsum("pc,pkc->pk", info["basis"], g[rows]) * (1.0 - self.lam_all[v])[:, None]
+            g0 = _rows_times_vesicle(info["basis"], g, rows) * (1.0 - self.lam_all[v])[:, None]
             u0 -= 0.5 * info["side"][:, None] * g0
         w = info["weights"]
         nearval = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line)
@@ -416,3 +416,18 @@ class _timed:
     def __exit__(self, *exc):
         if self.timers is not None:
             self.timers.stop(self.name)
+
+
+def _rows_times_vesicle(basis, coeffs, v):
+    """``out[p, k] = sum_c basis[p, c] coeffs[v[p], k, c]``: one GEMM per vesicle over its rows
+    (the same as ``np.einsum("pc,pkc->pk", basis, coeffs[v])`` without gathering a (P, 3, C)
+    copy: 1.67 -> 0.06 s for 88189 near pairs at p = 16)."""
+    out = np.empty((basis.shape[0], coeffs.shape[1]))
+    if basis.shape[0] == 0:
+        return out
+    order = np.argsort(v, kind="stable")
+    bounds = np.searchsorted(v[order], np.arange(coeffs.shape[0] + 1))
+    for j in np.flatnonzero(np.diff(bounds)):
+        rows = order[bounds[j]:bounds[j + 1]]
+        out[rows] = basis[rows] @ coeffs[j].T
+    return out

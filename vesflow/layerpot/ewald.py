@@ -71,22 +71,27 @@ PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol (1.0 and 0.1 gave the same errors on the scene of
 # benchmarks/far_field.py at 1e-4 .. 1e-10: the NUFFT is not the limiting part)
 NUFFT_EPS_FACTOR = 0.5
+# ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
+DUCC0_SIGMA = (1.3, 1.6)
+DUCC0_SIGMA_MIN_EPS = 5e-11
 # cost model of the parameter choice, CPU seconds of one thread, measured with
-# benchmarks/ewald.py --calibrate (docs/far_field.md): real space per (target, source) pair
-# inside the cutoff (single layer; about the same again for the double layer) and per
-# own-vesicle pair; NUFFT spreading per point per transform per kernel width cubed; FFT per
+# benchmarks/ewald_split.py (docs/far_field.md, "Where the periodic far field's time goes"): real
+# space per (target, source) pair inside the cutoff of the uniform-density estimate (single
+# layer; about the same again for the double layer), per target (the candidate buffers of its
+# cell, the cell traversal) and per own-vesicle pair (the vectorized direct sum); NUFFT
+# spreading and interpolation per point per transform per kernel width cubed; FFT per
 # fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
-# mode per component
-# Re-measured after the cell-ordered real space (periodic N = 512, p = 16, tol 1e-6, one thread,
-# CPU, load ~10: real 4.21 s for 1.52e8 model pairs (2.13e8 counted: the points lie on surfaces),
-# own 1.8 s for 5.9e8 pairs, k-space 0.12 s for 7.5e6 modes x 6; the NUFFT terms kept: type 1 +
-# type 2 measured 5.9 s against 6.7 s modelled; docs/far_field.md)
-COST = {"pair": 2.8e-8, "own_pair": 3.0e-9, "nufft_point": 2.0e-9, "fft_point": 0.8e-9, "mode": 3.0e-9}
-# memory of the Fourier grids of one pass (complex, one array per source component): a
-# parameter choice keeps the double layer's pass (6 components) within it; single and double
-# layer share one pass (9 components) when that fits too
+# mode per transform.  Fitted on periodic N = 512, p = 16, tol 1e-6, one thread, load ~3, at
+# rc = 0.99 / 1.2 / 1.5 / 1.8 / 2.1 (measured 8.0 / 7.1 / 6.5-6.7 / 8.3 / 11.1 s, modelled
+# 8.2 / 6.9 / 7.1 / 8.7 / 11.4 s; the choice there is rc = 1.33)
+COST = {"pair": 5.5e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 1.07e-9, "fft_point": 1.6e-9,
+        "mode": 1.0e-8}
+# memory of the Fourier grids of one pass (complex; one grid per pair of real source components
+# plus two for the result, EwaldSum.fourier): a parameter choice keeps the double layer's pass
+# (3 + 2 grids) within it; single and double layer share one pass (5 + 2 grids) when that fits too
 MAX_GRID_BYTES = 4 * 2 ** 30
-MAX_MODES = MAX_GRID_BYTES // (16 * 6)
+MAX_MODES = MAX_GRID_BYTES // (16 * 5)
+PASS_GRIDS_BOTH = 7
 
 
 def _have(lib):
@@ -134,10 +139,11 @@ def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
     fine = 3.4 * m
     wd = _kernel_width(p.nufft_eps) ** 3
     layers = 1 + (ncomp > 3)
-    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers
-    t += COST["nufft_point"] * wd * (ncomp * nsrc + 3 * ntrg)
-    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (ncomp + 3)
-    t += COST["mode"] * m * (ncomp + 3)
+    packed = (ncomp + 1) // 2                    # type-1 transforms; 2 type-2 (EwaldSum.fourier)
+    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"]
+    t += COST["nufft_point"] * wd * (packed * nsrc + 2 * ntrg)
+    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (packed + 2)
+    t += COST["mode"] * m * (packed + 2)
     return t / max(1, threads)
 
 
@@ -213,11 +219,12 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     return best[1]
 
 
-def make_params(tol, xi, rc, points, period=None):
-    """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``):
-    for tests of the independence of the result on xi."""
+def make_params(tol, xi, rc, points, period=None, double_layer=True):
+    """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``; the
+    stresslet's error prefactor unless ``double_layer`` is False): for tests of the
+    independence of the result on xi and for benchmarks/ewald_split.py."""
     lt = math.log(1.0 / tol)
-    kmax = 2.0 * xi * _exponents(lt)[1]
+    kmax = 2.0 * xi * _exponents(lt, double_layer)[1]
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if period is not None:
         L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
@@ -312,25 +319,31 @@ class _Nufft:
         if kind not in self._plans:
             import ducc0
             pts = self.src if kind == 1 else self.trg
+            # oversampling 1.3 .. 1.6 instead of ducc0's own choice in 1.19 .. 2.51: type 1 at
+            # N = 512 (1.08e6 sources, 146^3 modes) 1.64 -> 1.36-1.39 s, N = 64 0.21 -> 0.12 s
+            # (docs/far_field.md, "Speed: third session")
+            # (ducc0 has kernels for them down to eps 5e-11; below, its own range)
+            sigma = DUCC0_SIGMA if self.eps >= DUCC0_SIGMA_MIN_EPS else (1.19, 2.51)
             self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),
                                                  grid_shape=self.modes, epsilon=max(self.eps, 3e-13),
                                                  nthreads=self.threads, periodicity=2 * math.pi,
-                                                 fft_order=False)
+                                                 fft_order=False, sigma_min=sigma[0], sigma_max=sigma[1])
         return self._plans[kind]
 
-    def type1(self, c):
-        """``F_k = sum_s c_s e^{-i k.y_s}``: c (m, S) complex -> (m, n1, n2, n3)."""
+    def type1(self, c, out=None):
+        """``F_k = sum_s c_s e^{-i k.y_s}``: c (m, S) complex -> (m, n1, n2, n3) (into ``out``
+        if given)."""
         m = c.shape[0]
         if self.lib == "finufft":
-            return self._finufft_plan(1, m).execute(np.ascontiguousarray(c))
-        return self._ducc_plan(1).nu2u(points=np.ascontiguousarray(c), forward=True)
+            return self._finufft_plan(1, m).execute(np.ascontiguousarray(c), out=out)
+        return self._ducc_plan(1).nu2u(points=np.ascontiguousarray(c), forward=True, out=out)
 
-    def type2(self, U):
-        """``u_t = sum_k U_k e^{+i k.x_t}``: U (m, n1, n2, n3) -> (m, T) complex."""
+    def type2(self, U, out=None):
+        """``u_t = sum_k U_k e^{+i k.x_t}``: U (m, n1, n2, n3) -> (m, T) complex (into ``out``)."""
         m = U.shape[0]
         if self.lib == "finufft":
-            return self._finufft_plan(2, m).execute(np.ascontiguousarray(U))
-        return self._ducc_plan(2).u2nu(grid=np.ascontiguousarray(U), forward=False)
+            return self._finufft_plan(2, m).execute(np.ascontiguousarray(U), out=out)
+        return self._ducc_plan(2).u2nu(grid=np.ascontiguousarray(U), forward=False, out=out)
 
 
 def _sym6(nw, g):
@@ -410,6 +423,15 @@ class EwaldSum:
         self._psi = kernel_psi(p, self.threads)
         self._k = _kvectors(p)
         self._real = None            # cell lists of the real-space part, built at the first evaluation
+        self._buffers = {}
+
+    def _buffer(self, name, shape):
+        """A complex array kept between evaluations (the grids of a GMRES solve's every
+        iteration: no new allocation and first-touch page faults per call), one per name."""
+        b = self._buffers.get(name)
+        if b is None or b.shape != tuple(shape):
+            self._buffers[name] = b = np.empty(shape, dtype=np.complex128)
+        return b
 
     def _sorted(self, a):
         return a if self._perm is None else np.ascontiguousarray(a[self._perm])
@@ -430,24 +452,38 @@ class EwaldSum:
         return out
 
     def fourier(self, f_w=None, nw=None, g=None):
-        """Fourier-space part over all sources, (T, 3)."""
+        """Fourier-space part over all sources, (T, 3).  The real source components go two to
+        a complex type-1 transform and the three real velocity components in two type-2
+        transforms (:func:`vesflow._kernels.ewald.kspace_apply`): 2 + 2 transforms instead of
+        3 + 3 for the single layer, 5 + 2 instead of 9 + 3 for both layers."""
         comps = []
         if f_w is not None:
             comps.append(np.asarray(f_w, dtype=np.float64).T)
         if g is not None:
             comps.append(_sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
-        c = np.ascontiguousarray(np.concatenate(comps, axis=0), dtype=np.complex128)
+        real = np.concatenate(comps, axis=0)
+        m = real.shape[0]
+        c = np.zeros(((m + 1) // 2, real.shape[1]), dtype=np.complex128)
+        c.real = real[0::2]
+        c.imag[:m // 2] = real[1::2]
+        del real
         if self._spread is None:
-            F = self._nufft.type1(c)
+            P = self._nufft.type1(c, out=self._buffer("P", (c.shape[0],) + tuple(self.params.modes)))
         else:
             part, mine, nufft = self._spread
-            F = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
+            P = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
         del c
-        # in place: each mode's components are read before its three outputs are written
-        _kernels.kspace_apply(F, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
-                              1.0 / float(np.prod(self.params.period)), F)
-        U = F[:3]
-        return self._nufft.type2(U).real.T.copy()
+        P = P.reshape((-1,) + tuple(self.params.modes))
+        W = self._buffer("W", (2,) + P.shape[1:])
+        _kernels.kspace_apply(P, self._psi, self._k[0], self._k[1], self._k[2], f_w is not None, g is not None,
+                              1.0 / float(np.prod(self.params.period)), W)
+        del P
+        w = self._nufft.type2(W, out=self._buffer("w", (2, self.trg.shape[0])))
+        out = np.empty((self.trg.shape[0], 3))
+        out[:, 0] = w[0].real
+        out[:, 1] = w[0].imag
+        out[:, 2] = w[1].real
+        return out
 
     def evaluate(self, f_w=None, nw=None, g=None):
         """Single layer of ``f_w`` plus double layer of ``g`` (orientations ``nw``), (T, 3)."""
@@ -457,7 +493,7 @@ class EwaldSum:
         if self.trg.shape[0] == 0 or self.src.shape[0] == 0 or (f_w is None and g is None):
             return out
         out = self.real_space(f_w, nw, g)
-        if f_w is not None and g is not None and 9 * 16 * float(np.prod(self.params.modes)) > MAX_GRID_BYTES:
+        if f_w is not None and g is not None and PASS_GRIDS_BOTH * 16 * float(np.prod(self.params.modes)) > MAX_GRID_BYTES:
             out += self.fourier(f_w=f_w)                 # two passes: the grids of one fit the memory
             out += self.fourier(nw=nw, g=g)
         else:
