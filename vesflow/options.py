@@ -156,6 +156,8 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_correct_tol", float, 1e-10, "relative area / volume error left by the correction",
        "corrections", gt=0, lt=1),
     _O("-ves_correct_max_its", int, 5, "Newton iterations of the correction", "corrections", ge=1, le=100),
+    _O("-ves_keep_centroid", bool, True, "the post-step (reparameterization and area / volume correction) "
+       "keeps each vesicle's centroid: its net translation is removed (docs/dynamics.md)", "corrections"),
     _O("-ves_reparam", bool, True, "reparameterize surfaces (tangential moves) after each step", "corrections"),
     _O("-ves_reparam_dtau_max", float, 1e-3, "largest pseudo-time step of reparameterization",
        "corrections", gt=0),
