@@ -203,3 +203,23 @@ def test_post_step_keeps_the_centroid(keep):
         assert shift < 1e-13
     else:
         assert shift > 1e-5
+
+
+def test_reparameterization_budget_is_per_unit_time(monkeypatch):
+    """A step of dt reparameterizes with up to max(-ves_reparam_max_its, -ves_reparam_rate dt)
+    descent steps (default 20 and 1000 per unit time): a long step gets the descent of the many
+    short ones it replaces, and the mesh energy falls further."""
+    from vesflow import options as O, scene as S
+    import vesflow.simulation as sim
+    text = ('title = "one oblate"\n[discretization]\np = 8\n[time]\nhorizon = 1.0\ndt = 0.1\n'
+            '[[vesicle]]\nshape = "oblate"\nreduced_volume = 0.85\nbending_modulus = 0.01\n')
+    sc = S.parse_scene(text)
+    run = sim.Run(sc, O.read_options(O.dict_getter({}), sc))
+    bad = badly_parameterized(0.15, p=8)[None]
+    seen = []
+    real = sim.reparameterize
+    monkeypatch.setattr(sim, "reparameterize", lambda c, p, **kw: seen.append(kw["max_its"]) or real(c, p, **kw))
+    energy = {dt: spectral_energy(run._post_processed(bad, True, dt=dt), 8)[0] for dt in (0.01, 0.3)}
+    assert seen == [20, 300]
+    print(f"mesh energy {spectral_energy(bad, 8)[0]:.4g} -> {energy[0.01]:.4g} (dt 0.01), {energy[0.3]:.4g} (dt 0.3)")
+    assert energy[0.3] < energy[0.01] < spectral_energy(bad, 8)[0]

@@ -163,8 +163,11 @@ REGISTRY: tuple[Option, ...] = (
        "corrections", gt=0),
     _O("-ves_reparam_tol", float, 1e-5, "reparameterization stops when the pseudo-time step falls below this",
        "corrections", gt=0),
-    _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step", "corrections",
+    _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step (the least; -ves_reparam_rate)", "corrections",
        ge=1, le=10000),
+    _O("-ves_reparam_rate", float, 1000.0, "reparameterization iterations per unit simulated time: a step of dt "
+       "takes up to max(-ves_reparam_max_its, rate dt) (the grid distorts per unit time, not per step)",
+       "corrections", ge=0),
     _O("-ves_reparam_attenuation", str, "n2", "weights a_n of the mesh-quality energy E = sum a_n^2 |Y_nm|^2 "
        "(paper Fig. 4): n2 = n^2, n, n16 = n^16 (scaled), step = H(n - 2p/3)", "corrections",
        choices=("n2", "n", "n16", "step")),
