@@ -128,7 +128,7 @@ REGISTRY: tuple[Option, ...] = (
        "time stepping", choices=("euler", "sdc")),
     _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
-    _O("-ts_sdc_quadrature", str, "lobatto", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
+    _O("-ts_sdc_quadrature", str, "radau", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
        "or radau (the step's start and Radau IIA nodes, order 2 nodes - 3, L-stable: stiff modes damped)",
        "time stepping", choices=("lobatto", "radau")),
     _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
@@ -139,7 +139,9 @@ REGISTRY: tuple[Option, ...] = (
        "misses the stiff collocation error, docs/dynamics.md)", "time stepping",
        choices=("none", "doubling", "invariants", "sweeps", "contraction"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
-    _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",
+    _O("-ves_adapt_beta", float, None, "safety factor beta of the step-size update (sdc: its d_K varies by "
+       "+-40% from step to step, and with 0.9 a quarter of the steps were rejected, docs/accuracy_cost.md)",
+       "time stepping", default_text="0.9 (euler), 0.75 (sdc)",
        gt=0, le=1),
     _O("-ves_dt_min", float, 1e-6, "smallest time step (also bounds the first step); below it the run stops (exit status 3)",
        "time stepping", gt=0),
@@ -380,6 +382,8 @@ def read_options(getter, scene=None) -> OptionValues:
         vals["adapt"] = "sweeps" if vals["ts_type"] == "sdc" else "doubling"
     elif vals["adapt"] in ("sweeps", "contraction") and vals["ts_type"] != "sdc":
         _fail(OPTIONS["-ves_adapt"], vals["adapt"], f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
+    if vals["adapt_beta"] is None:
+        vals["adapt_beta"] = 0.75 if vals["ts_type"] == "sdc" else 0.9
     if vals["ts_type"] == "sdc" and vals["coupling"] != "implicit":
         _fail(OPTIONS["-ts_type"], "sdc", "needs -ves_coupling implicit (the quadrature integrates the "
               "velocity field; lagged coupling terms are not it)")
