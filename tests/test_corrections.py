@@ -207,14 +207,16 @@ def test_post_step_keeps_the_centroid(keep):
 
 def test_reparameterization_budget_is_per_unit_time(monkeypatch):
     """A step of dt reparameterizes with up to max(-ves_reparam_max_its, -ves_reparam_rate dt)
-    descent steps (default 20 and 1000 per unit time): a long step gets the descent of the many
-    short ones it replaces, and the mesh energy falls further."""
+    descent steps (default 20, and 1000 per unit time with sdc, 0 with euler): a long step gets
+    the descent of the many short ones it replaces, and the mesh energy falls further."""
     from vesflow import options as O, scene as S
     import vesflow.simulation as sim
     text = ('title = "one oblate"\n[discretization]\np = 8\n[time]\nhorizon = 1.0\ndt = 0.1\n'
             '[[vesicle]]\nshape = "oblate"\nreduced_volume = 0.85\nbending_modulus = 0.01\n')
     sc = S.parse_scene(text)
-    run = sim.Run(sc, O.read_options(O.dict_getter({}), sc))
+    assert O.read_options(O.dict_getter({})).reparam_rate == 0.0
+    assert O.read_options(O.dict_getter({"-ts_type": "sdc"})).reparam_rate == 1000.0
+    run = sim.Run(sc, O.read_options(O.dict_getter({"-ves_reparam_rate": 1000}), sc))
     bad = badly_parameterized(0.15, p=8)[None]
     seen = []
     real = sim.reparameterize

@@ -167,9 +167,10 @@ REGISTRY: tuple[Option, ...] = (
        "corrections", gt=0),
     _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step (the least; -ves_reparam_rate)", "corrections",
        ge=1, le=10000),
-    _O("-ves_reparam_rate", float, 1000.0, "reparameterization iterations per unit simulated time: a step of dt "
-       "takes up to max(-ves_reparam_max_its, rate dt) (the grid distorts per unit time, not per step)",
-       "corrections", ge=0),
+    _O("-ves_reparam_rate", float, None, "reparameterization iterations per unit simulated time: a step of dt "
+       "takes up to max(-ves_reparam_max_its, rate dt) (the grid distorts per unit time, not per step; euler's "
+       "short steps get that from -ves_reparam_max_its, docs/dynamics.md)",
+       "corrections", ge=0, default_text="1000 (sdc), 0 (euler)"),
     _O("-ves_reparam_attenuation", str, "n2", "weights a_n of the mesh-quality energy E = sum a_n^2 |Y_nm|^2 "
        "(paper Fig. 4): n2 = n^2, n, n16 = n^16 (scaled), step = H(n - 2p/3)", "corrections",
        choices=("n2", "n", "n16", "step")),
@@ -384,6 +385,8 @@ def read_options(getter, scene=None) -> OptionValues:
         _fail(OPTIONS["-ves_adapt"], vals["adapt"], f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
     if vals["adapt_beta"] is None:
         vals["adapt_beta"] = 0.75 if vals["ts_type"] == "sdc" else 0.9
+    if vals["reparam_rate"] is None:
+        vals["reparam_rate"] = 1000.0 if vals["ts_type"] == "sdc" else 0.0
     if vals["ts_type"] == "sdc" and vals["coupling"] != "implicit":
         _fail(OPTIONS["-ts_type"], "sdc", "needs -ves_coupling implicit (the quadrature integrates the "
               "velocity field; lagged coupling terms are not it)")
