@@ -173,3 +173,55 @@ def test_contacts_count_interpenetration():
     print(f"overlap 0.05: contacts {n}, min gap {g:.3f}, net force on 0 {F[0]}")
     assert n >= 2 and g == pytest.approx(-0.05, abs=1e-10)
     assert F[0, 0] < 0 < F[1, 0]                               # still separating
+
+
+@pytest.mark.parametrize("keep", [True, False])
+def test_post_step_keeps_the_centroid(keep):
+    """Run._post_processed (reparameterization, then area/volume correction) on a sheared,
+    asymmetric shape with area and volume off by ~1e-3: with -ves_keep_centroid (default) the
+    centroid is where the step put it (to round-off) and area, volume are restored; without it
+    the two moves shift the centroid (measured here: 1.4e-5)."""
+    from vesflow import options as O, scene as S
+    from vesflow.simulation import Run
+    text = ('title = "one oblate"\n[discretization]\np = 8\n[time]\nhorizon = 1.0\ndt = 0.1\n'
+            '[[vesicle]]\nshape = "oblate"\nreduced_volume = 0.85\nbending_modulus = 0.01\n')
+    sc = S.parse_scene(text)
+    run = Run(sc, O.read_options(O.dict_getter({"-ves_keep_centroid": keep}), sc))
+    c = run.stepper.coeffs.copy()
+    T = sph.transform(8)
+    X = np.moveaxis(T.synth(c), -2, -1)
+    shear = X.copy()
+    shear[..., 0] += 0.3 * X[..., 2] + 0.05 * X[..., 2] ** 2 + 0.02 * X[..., 1] ** 3   # asymmetric
+    moved = T.analysis(np.moveaxis(shear * 1.0005, -1, -2))
+    before = Surface(moved, 8)
+    after = Surface(run._post_processed(moved, True), 8)
+    shift = np.linalg.norm(after.centroid() - before.centroid())
+    assert np.abs(after.area() / run.area0 - 1).max() < 1e-9
+    assert np.abs(after.volume() / run.volume0 - 1).max() < 1e-9
+    print(f"keep_centroid {keep}: centroid moved by {shift:.2e}")
+    if keep:
+        assert shift < 1e-13
+    else:
+        assert shift > 1e-5
+
+
+def test_reparameterization_budget_is_per_unit_time(monkeypatch):
+    """A step of dt reparameterizes with up to max(-ves_reparam_max_its, -ves_reparam_rate dt)
+    descent steps (default 20, and 1000 per unit time with sdc, 0 with euler): a long step gets
+    the descent of the many short ones it replaces, and the mesh energy falls further."""
+    from vesflow import options as O, scene as S
+    import vesflow.simulation as sim
+    text = ('title = "one oblate"\n[discretization]\np = 8\n[time]\nhorizon = 1.0\ndt = 0.1\n'
+            '[[vesicle]]\nshape = "oblate"\nreduced_volume = 0.85\nbending_modulus = 0.01\n')
+    sc = S.parse_scene(text)
+    assert O.read_options(O.dict_getter({})).reparam_rate == 0.0
+    assert O.read_options(O.dict_getter({"-ts_type": "sdc"})).reparam_rate == 1000.0
+    run = sim.Run(sc, O.read_options(O.dict_getter({"-ves_reparam_rate": 1000}), sc))
+    bad = badly_parameterized(0.15, p=8)[None]
+    seen = []
+    real = sim.reparameterize
+    monkeypatch.setattr(sim, "reparameterize", lambda c, p, **kw: seen.append(kw["max_its"]) or real(c, p, **kw))
+    energy = {dt: spectral_energy(run._post_processed(bad, True, dt=dt), 8)[0] for dt in (0.01, 0.3)}
+    assert seen == [20, 300]
+    print(f"mesh energy {spectral_energy(bad, 8)[0]:.4g} -> {energy[0.01]:.4g} (dt 0.01), {energy[0.3]:.4g} (dt 0.3)")
+    assert energy[0.3] < energy[0.01] < spectral_energy(bad, 8)[0]

@@ -13,7 +13,14 @@ def test_parse_case_and_errors():
     assert study.parse_case("8,1e-2") == study.Case(8, 0.01, 0.0)
     assert study.parse_case("8,1e-2,0,sdc") == study.Case(8, 0.01, 0.0, "sdc")
     assert study.Case(8, 0.01).key == "p8_tol0.01_R0" and study.Case(8, 0.01, 0, "sdc").key == "p8_tol0.01_R0_sdc"
-    for bad in ["8", "8.5,0.1", "8,-1", "8,0.1,-0.1", "a,b", "1,0.1", "8,0.1,0,rk4"]:
+    assert study.parse_case("12,1e-2,0,sdc-radau4x3").key == "p12_tol0.01_R0_sdc-radau4x3"
+    assert study.scheme_options("sdc-radau4x3") == {"-ts_type": "sdc", "-ves_adapt": "sweeps", "-ts_sdc_quadrature":
+                                                    "radau", "-ts_sdc_nodes": 4, "-ts_sdc_sweeps": 3}
+    assert study.scheme_options("sdc-lobatto3") == {"-ts_type": "sdc", "-ves_adapt": "sweeps",
+                                                    "-ts_sdc_quadrature": "lobatto", "-ts_sdc_nodes": 3}
+    assert study.scheme_options("euler") == {"-ts_type": "euler", "-ves_adapt": "doubling"}
+    for bad in ["8", "8.5,0.1", "8,-1", "8,0.1,-0.1", "a,b", "1,0.1", "8,0.1,0,rk4", "8,0.1,0,sdc-gauss3",
+                "8,0.1,0,euler-radau3", "8,0.1,0,sdc-radau"]:
         with pytest.raises(SceneError, match="expected p,tol"):
             study.parse_case(bad)
 

@@ -128,7 +128,7 @@ REGISTRY: tuple[Option, ...] = (
        "time stepping", choices=("euler", "sdc")),
     _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
-    _O("-ts_sdc_quadrature", str, "lobatto", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
+    _O("-ts_sdc_quadrature", str, "radau", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
        "or radau (the step's start and Radau IIA nodes, order 2 nodes - 3, L-stable: stiff modes damped)",
        "time stepping", choices=("lobatto", "radau")),
     _O("-ts_sdc_sweeps", int, 2, "correction sweeps of an sdc step (each one order more)", "time stepping",
@@ -139,7 +139,9 @@ REGISTRY: tuple[Option, ...] = (
        "misses the stiff collocation error, docs/dynamics.md)", "time stepping",
        choices=("none", "doubling", "invariants", "sweeps", "contraction"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
-    _O("-ves_adapt_beta", float, 0.9, "safety factor beta of the step-size update", "time stepping",
+    _O("-ves_adapt_beta", float, None, "safety factor beta of the step-size update (sdc: its d_K varies by "
+       "+-40% from step to step, and with 0.9 a quarter of the steps were rejected, docs/accuracy_cost.md)",
+       "time stepping", default_text="0.9 (euler), 0.75 (sdc)",
        gt=0, le=1),
     _O("-ves_dt_min", float, 1e-6, "smallest time step (also bounds the first step); below it the run stops (exit status 3)",
        "time stepping", gt=0),
@@ -156,13 +158,19 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_correct_tol", float, 1e-10, "relative area / volume error left by the correction",
        "corrections", gt=0, lt=1),
     _O("-ves_correct_max_its", int, 5, "Newton iterations of the correction", "corrections", ge=1, le=100),
+    _O("-ves_keep_centroid", bool, True, "the post-step (reparameterization and area / volume correction) "
+       "keeps each vesicle's centroid: its net translation is removed (docs/dynamics.md)", "corrections"),
     _O("-ves_reparam", bool, True, "reparameterize surfaces (tangential moves) after each step", "corrections"),
     _O("-ves_reparam_dtau_max", float, 1e-3, "largest pseudo-time step of reparameterization",
        "corrections", gt=0),
     _O("-ves_reparam_tol", float, 1e-5, "reparameterization stops when the pseudo-time step falls below this",
        "corrections", gt=0),
-    _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step", "corrections",
+    _O("-ves_reparam_max_its", int, 20, "reparameterization iterations per time step (the least; -ves_reparam_rate)", "corrections",
        ge=1, le=10000),
+    _O("-ves_reparam_rate", float, None, "reparameterization iterations per unit simulated time: a step of dt "
+       "takes up to max(-ves_reparam_max_its, rate dt) (the grid distorts per unit time, not per step; euler's "
+       "short steps get that from -ves_reparam_max_its, docs/dynamics.md)",
+       "corrections", ge=0, default_text="1000 (sdc), 0 (euler)"),
     _O("-ves_reparam_attenuation", str, "n2", "weights a_n of the mesh-quality energy E = sum a_n^2 |Y_nm|^2 "
        "(paper Fig. 4): n2 = n^2, n, n16 = n^16 (scaled), step = H(n - 2p/3)", "corrections",
        choices=("n2", "n", "n16", "step")),
@@ -375,6 +383,10 @@ def read_options(getter, scene=None) -> OptionValues:
         vals["adapt"] = "sweeps" if vals["ts_type"] == "sdc" else "doubling"
     elif vals["adapt"] in ("sweeps", "contraction") and vals["ts_type"] != "sdc":
         _fail(OPTIONS["-ves_adapt"], vals["adapt"], f"needs -ts_type sdc (-ts_type is {vals['ts_type']})")
+    if vals["adapt_beta"] is None:
+        vals["adapt_beta"] = 0.75 if vals["ts_type"] == "sdc" else 0.9
+    if vals["reparam_rate"] is None:
+        vals["reparam_rate"] = 1000.0 if vals["ts_type"] == "sdc" else 0.0
     if vals["ts_type"] == "sdc" and vals["coupling"] != "implicit":
         _fail(OPTIONS["-ts_type"], "sdc", "needs -ves_coupling implicit (the quadrature integrates the "
               "velocity field; lagged coupling terms are not it)")

@@ -2,7 +2,8 @@
 
 X' = F(X), with F(X) the velocity of configuration X (Stepper.velocity: the step system with
 dt = 0, every force explicit, coupling, background flow, gravity and repulsion included).
-On Gauss-Lobatto nodes t_0 = t_n < t_1 < ... < t_M = t_n + dt (substeps h_m):
+On the nodes t_0 = t_n < t_1 < ... < t_M = t_n + dt (-ts_sdc_quadrature: the start and Radau IIA nodes, the
+run default, or Gauss-Lobatto; substeps h_m):
 
   provisional   X_{m+1} = X_m + h_m u,  u = V_{X_m}[f_b(X_m) + h_m B_{X_m}[u]]    (the first-order step)
   sweep k -> k+1, with the residual r_m = X_0 + int_{t_0}^{t_m} F(X^k) - X^k_m (spectral quadrature)

@@ -179,12 +179,12 @@ class Run:
         # projection iterated (`reparam.project_onto`: shape change below the truncation error,
         # not used everywhere because it keeps the descent from converging, docs/robustness.md)
         raw = st.coeffs.copy()
-        st.coeffs = self._post_processed(raw, self.opts["reparam"])
+        st.coeffs = self._post_processed(raw, self.opts["reparam"], dt=dt)
         check = self.opts["collision"] and st.surface.n_vesicles > 1
         if check and self._touching():
             touching = True
             if self.opts["reparam"]:
-                st.coeffs = self._post_processed(raw, True, project_its=10)
+                st.coeffs = self._post_processed(raw, True, project_its=10, dt=dt)
                 touching = self._touching()
                 self.reparam_iterated += int(not touching)
                 if touching:
@@ -392,30 +392,49 @@ class Run:
         s.q_far = _step_q(self.q_near, max(e["near"], e["far"]), tol, lo, hi)
         self.quad_errors = e
 
-    def _post_processed(self, coeffs, reparam, project_its=1):
+    def _post_processed(self, coeffs, reparam, project_its=1, dt=0.0):
         """Reparameterize (if reparam), then restore area and volume (the reparameterization
         moves points tangentially but changes A and V at the discretization error, ~1e-6; the
         correction after it leaves them at -ves_correct_tol).  With a partition each rank
         processes its vesicles (both act per vesicle) and the results are gathered."""
         if self.part is None:
-            return self._post_process(coeffs, reparam, project_its, self.area0, self.volume0)
+            return self._post_process(coeffs, reparam, project_its, self.area0, self.volume0, dt)
         idx = self.part.idx
-        mine = self._post_process(coeffs[idx], reparam, project_its, _rows(self.area0, idx), _rows(self.volume0, idx))
+        mine = self._post_process(coeffs[idx], reparam, project_its, _rows(self.area0, idx), _rows(self.volume0, idx), dt)
         with self.timers.stage("gather"):
             return self.part.gather(mine)
 
-    def _post_process(self, coeffs, reparam, project_its, area0, volume0):
+    def _post_process(self, coeffs, reparam, project_its, area0, volume0, dt=0.0):
+        """Reparameterize, correct area and volume, then (-ves_keep_centroid) translate each
+        vesicle back to the centroid the step gave it.  Neither part is motion: the
+        reparameterization moves points tangentially (its shape change is the truncation error),
+        the correction is a normal move psi n (3.20); on a sheared, asymmetric shape both shift
+        the volume centroid, by 2e-6 ... 2e-5 per step in the accuracy-cost pair (p = 8, sdc),
+        as much as the step's own error and not seen by any step-error estimate.  A rigid
+        translation changes neither area, volume nor parameterization.
+
+        The reparameterization takes up to max(-ves_reparam_max_its, -ves_reparam_rate dt)
+        descent steps: the grid distorts at a rate per unit simulated time, so the descent's
+        budget is per unit time too.  With a fixed budget per step (20), a run of 20 sdc steps
+        reparameterized 15x less than one of 300 euler steps: every call stopped at the cap and
+        the mesh energy rose to 22 instead of 16 (accuracy-cost pair, p = 8), a spatial error
+        set by the number of steps, not by the tolerance."""
         o = self.opts
+        if o["keep_centroid"]:
+            c0 = Surface(coeffs, self.p).centroid()
         if reparam:
             with self.timers.stage("reparam"):
                 coeffs, _, _, _ = reparameterize(coeffs, self.p, dtau_max=o["reparam_dtau_max"],
-                                                 tol=o["reparam_tol"], max_its=o["reparam_max_its"],
+                                                 tol=o["reparam_tol"],
+                                                 max_its=max(o["reparam_max_its"], int(np.ceil(o["reparam_rate"] * dt))),
                                                  attenuation=o["reparam_attenuation"],
                                                  project_its=project_its)
         if o["correct"] == "area_volume":
             with self.timers.stage("correction"):
                 coeffs, _, _ = correct_area_volume(coeffs, self.p, area0, volume0,
                                                    tol=o["correct_tol"], max_its=o["correct_max_its"])
+        if o["keep_centroid"]:
+            coeffs = Surface(coeffs, self.p).translated(c0 - Surface(coeffs, self.p).centroid()).coeffs
         return coeffs
 
     def _wrap(self):

@@ -34,6 +34,25 @@ from .surface import Surface
 SCHEMES = ("euler", "sdc")      # -ts_type; euler with step doubling, sdc with its sweep estimate
 
 
+def scheme_options(scheme):
+    """The run options of a study scheme: "euler", "sdc" (the defaults of -ts_sdc_*) or
+    "sdc-QUADn" / "sdc-QUADnxk" (QUAD lobatto or radau, n = -ts_sdc_nodes, k = -ts_sdc_sweeps),
+    e.g. "sdc-radau4x2"; ValueError naming the scheme otherwise."""
+    import re
+    base, _, variant = scheme.partition("-")
+    m = re.fullmatch(r"(lobatto|radau)(\d)(?:x(\d+))?", variant) if variant else None
+    if base not in SCHEMES or (variant and (base != "sdc" or m is None)):
+        raise ValueError(f"scheme {scheme!r}: must be euler, sdc or sdc-QUADn[xk] (QUAD lobatto or radau, "
+                         "n nodes 2-9, k sweeps), e.g. sdc-radau4x2")
+    given = {"-ts_type": base, "-ves_adapt": "doubling" if base == "euler" else "sweeps"}
+    if m is not None:
+        given["-ts_sdc_quadrature"] = m.group(1)
+        given["-ts_sdc_nodes"] = int(m.group(2))
+        if m.group(3):
+            given["-ts_sdc_sweeps"] = int(m.group(3))
+    return given
+
+
 @dataclass(frozen=True)
 class Case:
     """One run of the study: degree p, adaptivity rate tol = E / T, repulsion radius R (0: off),
@@ -102,8 +121,7 @@ def run_case(scene, case, horizon=None, extra_options=None):
     """Run one case; returns a dict of the measured figures (status 'ok' or 'failed: ...')."""
     from .simulation import Run
     sc = case_scene(scene, case, horizon)
-    given = {"-ts_type": case.scheme, "-ves_adapt": "doubling" if case.scheme == "euler" else "sweeps",
-             "-ves_adapt_tol": case.tol}
+    given = dict(scheme_options(case.scheme), **{"-ves_adapt_tol": case.tol})
     given.update(extra_options or {})
     opts = optmod.read_options(optmod.dict_getter(given), sc)
     rec = Recorder(opts["q_near"])
@@ -117,7 +135,7 @@ def run_case(scene, case, horizon=None, extra_options=None):
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     steps = rec.steps
     solves_per_try = 3 if given["-ves_adapt"] == "doubling" else 1
-    if case.scheme == "sdc":        # vesflow.sdc: M (2K + 1) + 1 solves per step, M = nodes - 1
+    if opts["ts_type"] == "sdc":    # vesflow.sdc: M (2K + 1) + 1 solves per step, M = nodes - 1
         solves_per_try *= ((opts["ts_sdc_nodes"] - 1) * (2 * opts["ts_sdc_sweeps"] + 1)
                            + (opts["ts_sdc_quadrature"] == "lobatto"))
     n_solves = solves_per_try * len(steps)
@@ -227,12 +245,17 @@ def plot(rows, path, title):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, ax = plt.subplots(figsize=(6.4, 4.6))
-    for scheme, R, marker in (("euler", 0.0, "o"), ("euler", None, "s"), ("sdc", 0.0, "^"), ("sdc", None, "D")):
-        sel = [r for r in rows if r["error"] is not None and ((r["R"] == 0) == (R == 0.0))
-               and r.get("scheme", "euler") == scheme]
-        if sel:
+    schemes = sorted({r.get("scheme", "euler") for r in rows}, key=lambda s: (s != "euler", s))
+    markers = dict(zip(schemes, "o^vDP*Xph"))
+    for scheme in schemes:
+        for R in (0.0, None):
+            sel = [r for r in rows if r["error"] is not None and ((r["R"] == 0) == (R == 0.0))
+                   and r.get("scheme", "euler") == scheme]
+            if not sel:
+                continue
             sc = ax.scatter([r["cpu"] for r in sel], [r["error"] for r in sel], c=[r["p"] for r in sel],
-                            cmap="viridis", marker=marker, s=46, vmin=6, vmax=16,
+                            cmap="viridis", marker=markers[scheme], s=46, vmin=6, vmax=16,
+                            edgecolors="none" if R == 0.0 else "red",
                             label=f"{scheme}, " + ("no repulsion" if R == 0.0 else "repulsion"))
             for r in sel:
                 ax.annotate(f"{scheme} p{r['p']} E/T={r['tol']:g}" + (f" R={r['R']:g}" if r["R"] else ""),
@@ -317,16 +340,18 @@ def parse_case(text):
     try:
         parts = [float(x) for x in items]
         if len(parts) not in (2, 3) or parts[0] != int(parts[0]) or parts[0] < 2 or parts[1] <= 0 \
-                or (len(parts) == 3 and parts[2] < 0) or scheme not in SCHEMES:
+                or (len(parts) == 3 and parts[2] < 0):
             raise ValueError
+        scheme_options(scheme)
     except ValueError:
         raise SceneError(f"case {text!r}: expected p,tol[,R[,scheme]] with integer p >= 2, tol > 0, R >= 0, "
-                         f"scheme in {', '.join(SCHEMES)}") from None
+                         "scheme euler, sdc or sdc-QUADn[xk] (e.g. sdc-radau4x2)") from None
     return Case(int(parts[0]), parts[1], parts[2] if len(parts) == 3 else 0.0, scheme)
 
 
 USAGE = ("usage: vesflow study accuracy-cost [SCENE.toml] [--out DIR] [--quick] [--ref p,tol,R[,scheme]] "
-         "[--case p,tol,R[,scheme] ...] [--fresh]  (scheme: euler or sdc, -ts_type)")
+         "[--case p,tol,R[,scheme] ...] [--fresh]  (scheme: euler, sdc or sdc-QUADn[xk], e.g. sdc-radau4x2: "
+         "-ts_type sdc -ts_sdc_quadrature radau -ts_sdc_nodes 4 -ts_sdc_sweeps 2)")
 
 
 def main(argv):
