@@ -3,7 +3,8 @@
 
 N vesicles (unit-radius spheres, or biconcave cells of reduced volume 0.65 with --shape
 biconcave, random orientations) on a jittered cubic lattice of spacing --spacing in their
-periodic cube, p = --p, far-field sources on the q = 2p grid, Ewald far field at --tol.  Set-up
+periodic cube, p = --p, far-field and near sources on the degree-q grid (--q, default 2p;
+``Settings(q_far=...)``), Ewald far field at --tol.  Set-up
 once (self operators, near pairs, Ewald cell lists and NUFFT plans: the first apply), then
 --repeat applications of ``LayerPotentials.apply`` (one per GMRES iteration), each split into
 self (batched GEMV of the dense self operators), far (Ewald), near (pair corrections) and the
@@ -13,6 +14,7 @@ per iteration, best of the repeats.  Memory: the self operators alone are N (3C)
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/iteration.py --n 64
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/iteration.py --n 64 --shape biconcave --spacing 2.2
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/iteration.py --n 512 --q 24 --repeat 3
 """
 import argparse
 import os
@@ -48,11 +50,15 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, default=64)
     ap.add_argument("--p", type=int, default=16)
+    ap.add_argument("--q", type=int, default=None, help="far/near upsampled grid degree (default 2p)")
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--spacing", type=float, default=2.5)
     ap.add_argument("--shape", choices=("sphere", "biconcave"), default="sphere")
     ap.add_argument("--repeat", type=int, default=2)
     a = ap.parse_args(argv)
+    q = a.q or 2 * a.p
+    if q < a.p:
+        ap.error(f"--q {q}: the far/near grid degree must be >= p = {a.p}")
     rng = np.random.default_rng(0)
     side = int(np.ceil(a.n ** (1 / 3)))
     ijk = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:a.n]
@@ -62,11 +68,11 @@ def main(argv=None):
     coeffs = np.stack([shapes.make_shape(a.shape, a.p, center=tuple(c), rotation=tuple(rng.uniform(0, 3, 3)), **kw)
                        for c in centres])
     surf = Surface(coeffs, a.p)
-    print(f"# N = {a.n} {a.shape}s, p = {a.p}, period {period:g}, tol {a.tol:g}, "
+    print(f"# N = {a.n} {a.shape}s, p = {a.p}, q = {q}, period {period:g}, tol {a.tol:g}, "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load {os.getloadavg()[0]:.2f}", flush=True)
     tm = CpuTimers()
     w0, c0 = time.perf_counter(), time.process_time()
-    lp = LayerPotentials(surf, settings=Settings(backend="ewald", fmm_eps=a.tol, period=period), timers=tm)
+    lp = LayerPotentials(surf, settings=Settings(backend="ewald", fmm_eps=a.tol, period=period, q_far=q), timers=tm)
     f = rng.standard_normal((a.n, 3, (a.p + 1) ** 2 - 1)) * np.exp(-0.3 * np.arange((a.p + 1) ** 2 - 1))
     lp.apply(f)                                  # first apply: cell lists, NUFFT plans
     sw, sc = time.perf_counter() - w0, time.process_time() - c0
@@ -85,7 +91,7 @@ def main(argv=None):
     tot, parts = best
     rest = tuple(tot[i] - sum(v[i] for v in parts.values()) for i in range(2))
     line = "  ".join(f"{k} {v[0]:.2f} / {v[1]:.2f}" for k, v in list(parts.items()) + [("rest", rest)])
-    print(f"N {a.n:5d}  iteration {tot[0]:.2f} / {tot[1]:.2f} s (wall / cpu): {line}  (load {os.getloadavg()[0]:.2f})")
+    print(f"N {a.n:5d} q {q}  iteration {tot[0]:.2f} / {tot[1]:.2f} s (wall / cpu): {line}  (load {os.getloadavg()[0]:.2f})")
 
 
 if __name__ == "__main__":
