@@ -197,7 +197,7 @@ class FarField:
 
     Attributes: ``backend`` (resolved), ``eps``, ``ids`` (the distinct source vesicle ids,
     sorted), ``src_off`` (offsets of each vesicle's sources in the id-sorted order),
-    ``n_snapped`` (targets moved onto a coincident own source, FMM only).
+    ``n_snapped`` (targets moved onto a coincident own source, fmm and ewald).
     """
 
     def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None,
@@ -237,8 +237,39 @@ class FarField:
             self._setup_fmm()
         elif self.backend == "ewald":
             from .ewald import EwaldSum
-            self.ewald = EwaldSum(self.src, self.src_id, self.trg, self.trg_id, tol=self.eps, period=period,
+            # the own vesicle's pairs are summed inside rc and its full kernel subtracted: a
+            # target a rounding error away from an own source (p- and q-grid longitudes that
+            # coincide only up to rounding, e.g. q = 24 at p = 16) would cancel two 1/r ~ 1e16
+            # terms; snapped onto the source, the pair is an exact coincidence, which both
+            # sums skip (their difference, the Fourier part's self term, is subtracted)
+            trg = self._snapped_targets()
+            self.ewald = EwaldSum(self.src, self.src_id, trg, self.trg_id, tol=self.eps, period=period,
                                   params=params, spread=spread, double_layer=double_layer)
+
+    def _snapped_targets(self):
+        """The targets, those within SNAP_TOL * (size of the point cloud) of a source of their
+        own vesicle moved exactly onto it (``n_snapped`` counts them)."""
+        sid = self.src_id
+        perm = np.argsort(sid, kind="stable") if sid.size and np.any(sid[1:] < sid[:-1]) else None
+        src = self.src if perm is None else np.ascontiguousarray(self.src[perm])
+        ids, starts = np.unique(sid if perm is None else sid[perm], return_index=True)
+        off = np.append(starts, sid.size).astype(np.int64)
+        nt = self.trg.shape[0]
+        trg_vi = np.full(nt, -1, dtype=np.int64)
+        if ids.size:
+            vi = np.minimum(np.searchsorted(ids, self.trg_id), ids.size - 1)
+            trg_vi = np.where(ids[vi] == self.trg_id, vi, -1).astype(np.int64)
+        allp = np.concatenate([self.src, self.trg])
+        size = float(np.max(np.ptp(allp, axis=0))) if allp.shape[0] > 1 else 0.0
+        tol = SNAP_TOL * (size if size > 0.0 else 1.0)
+        hit = _search.coincident_sources(src, off, self.trg, trg_vi, tol)
+        moved = np.flatnonzero(hit >= 0)
+        self.n_snapped = int(moved.size)
+        if not moved.size:
+            return self.trg
+        trg = self.trg.copy()
+        trg[moved] = src[hit[moved]]
+        return trg
 
     # ------------------------------------------------------------------ set-up (FMM)
     def _setup_fmm(self):
@@ -259,16 +290,7 @@ class FarField:
         tsel = np.flatnonzero(trg_vi >= 0)
         self._self_pairs = np.ascontiguousarray(np.stack([tsel, trg_vi[tsel]], axis=1), dtype=np.int64)
         # snap targets that coincide with an own source up to rounding
-        allp = np.concatenate([self.src, self.trg])
-        size = float(np.max(np.ptp(allp, axis=0))) if allp.shape[0] > 1 else 0.0
-        tol = SNAP_TOL * (size if size > 0.0 else 1.0)
-        hit = _search.coincident_sources(self._src_sorted, self.src_off, self.trg, trg_vi, tol)
-        self._trg_fmm = self.trg
-        moved = np.flatnonzero(hit >= 0)
-        if moved.size:
-            self._trg_fmm = self.trg.copy()
-            self._trg_fmm[moved] = self._src_sorted[hit[moved]]
-        self.n_snapped = int(moved.size)
+        self._trg_fmm = self._snapped_targets()
         self._srcT = np.ascontiguousarray(self.src.T)
         self._trgT = np.ascontiguousarray(self._trg_fmm.T)
 
