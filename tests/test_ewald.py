@@ -425,20 +425,23 @@ def test_free_space_accuracy_with_a_large_splitting_in_a_large_box(tol, xi):
         assert rel_err(es.evaluate(*dens), ref) < tol
 
 
+@pytest.mark.parametrize("own", ["subtract", "smooth"])
 @pytest.mark.parametrize("q", [24, 40])
-def test_ewald_far_field_with_grids_whose_shared_points_coincide_only_up_to_rounding(rng, q):
+def test_ewald_far_field_with_grids_whose_shared_points_coincide_only_up_to_rounding(rng, q, own):
     """At p = 16 the q = 24 and 40 grids share equator points with the p-grid targets only up
-    to rounding (longitudes 2 pi k / 32 against 2 pi m / 2q): the own vesicle's real-space pair
-    and its subtracted full kernel cancel two 1/r ~ 1e16 terms unless the target is snapped
-    onto the source (it was 2.5e-2 off the direct sum at q = 24, 5e-9 at q = 32)."""
+    to rounding (longitudes 2 pi k / 32 against 2 pi m / 2q): with own="subtract" the own
+    vesicle's real-space pair and its subtracted full kernel cancel two 1/r ~ 1e16 terms unless
+    the target is snapped onto the source (it was 2.5e-2 off the direct sum at q = 24, 5e-9 at
+    q = 32); own="smooth" has no own pair (the smooth share G^F is finite there), no snap."""
     from vesflow.layerpot.evaluator import LayerPotentials, Settings
     p = 16
     S = Surface(np.stack([shapes.make_shape("sphere", p, center=c) for c in [(0, 0, 0), (2.5, 0.2, 0.1)]]), p)
     f = rng.standard_normal((2, 3, sph.n_coeffs(p)))
     out = {}
     for backend in ("direct", "ewald"):
-        lp = LayerPotentials(S, lam=1.0, settings=Settings(backend=backend, fmm_eps=1e-6, q_far=q))
+        lp = LayerPotentials(S, lam=1.0, settings=Settings(backend=backend, fmm_eps=1e-6, q_far=q, ewald_own=own))
         assert lp.far.backend == backend
         out[backend] = lp.apply(f)
-    assert lp.far.n_snapped > 0
+    assert lp.far.smooth_own == (own == "smooth")
+    assert (lp.far.n_snapped > 0) == (own == "subtract")
     assert rel_err(out["ewald"], out["direct"]) < 1e-6

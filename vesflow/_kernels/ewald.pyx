@@ -198,6 +198,58 @@ def smooth_part(const double[:, ::1] r, const double[:, ::1] f, const double[:, 
     return out
 
 
+def smooth_kernel_tables(const double[:, ::1] x, const double[:, ::1] y, const double[::1] w,
+                         const double[:, ::1] nw, double xi, double[:, :, ::1] single, double[:, :, ::1] double_):
+    """The smooth (Fourier) parts of the kernels between targets x (T, 3) and sources y (S, 3),
+    the 6 components a <= b (order 00, 01, 02, 11, 12, 22, as stokes.self_kernel_tables)::
+
+        single[t, ab, s] = G^F_ab(x_t - y_s) w_s / (8 pi)
+        double[t, ab, s] = sum_l T^F_abl(x_t - y_s) nw[s, l] / (8 pi)
+                         = (-A (delta_ab (r.nw) + nw_a r_b + r_a nw_b) + b (r.nw) r_a r_b) / (8 pi)
+
+    (module docstring; finite at r = 0, series below z = SERIES_Z).  Either output may have
+    shape (0, 0, 0) to skip it.  Writes (does not accumulate).  One thread (the callers map
+    over vesicles)."""
+    cdef Py_ssize_t T = x.shape[0], S = y.shape[0], t, k
+    cdef bint want_s = single.shape[0] > 0, want_d = double_.shape[0] > 0
+    if x.shape[1] != 3 or y.shape[1] != 3 or w.shape[0] != S or (want_d and (nw.shape[0] != S or nw.shape[1] != 3)):
+        raise ValueError("smooth_kernel_tables: inconsistent shapes")
+    if (want_s and (single.shape[0] != T or single.shape[1] != 6 or single.shape[2] != S)) or \
+       (want_d and (double_.shape[0] != T or double_.shape[1] != 6 or double_.shape[2] != S)):
+        raise ValueError("smooth_kernel_tables: outputs must be (T, 6, S)")
+    cdef double r0, r1, r2, rr, ci, ca, A, bb, rn, c
+    with nogil:
+        for t in range(T):
+            for k in range(S):
+                r0 = x[t, 0] - y[k, 0]
+                r1 = x[t, 1] - y[k, 1]
+                r2 = x[t, 2] - y[k, 2]
+                rr = r0 * r0 + r1 * r1 + r2 * r2
+                if want_s:
+                    _gf_coef(rr, xi, &ci, &ca)
+                    c = w[k] * INV8PI
+                    ci = ci * c
+                    ca = ca * c
+                    single[t, 0, k] = ci + ca * r0 * r0
+                    single[t, 1, k] = ca * r0 * r1
+                    single[t, 2, k] = ca * r0 * r2
+                    single[t, 3, k] = ci + ca * r1 * r1
+                    single[t, 4, k] = ca * r1 * r2
+                    single[t, 5, k] = ci + ca * r2 * r2
+                if want_d:
+                    _tf_coef(rr, xi, &A, &bb)
+                    A = A * INV8PI
+                    bb = bb * INV8PI
+                    rn = r0 * nw[k, 0] + r1 * nw[k, 1] + r2 * nw[k, 2]
+                    c = bb * rn
+                    double_[t, 0, k] = -A * (rn + 2.0 * nw[k, 0] * r0) + c * r0 * r0
+                    double_[t, 1, k] = -A * (nw[k, 0] * r1 + r0 * nw[k, 1]) + c * r0 * r1
+                    double_[t, 2, k] = -A * (nw[k, 0] * r2 + r0 * nw[k, 2]) + c * r0 * r2
+                    double_[t, 3, k] = -A * (rn + 2.0 * nw[k, 1] * r1) + c * r1 * r1
+                    double_[t, 4, k] = -A * (nw[k, 1] * r2 + r1 * nw[k, 2]) + c * r1 * r2
+                    double_[t, 5, k] = -A * (rn + 2.0 * nw[k, 2] * r2) + c * r2 * r2
+
+
 cdef inline double complex _unpack(const double complex* P, Py_ssize_t grid, Py_ssize_t c, Py_ssize_t at,
                                    Py_ssize_t mirror) noexcept nogil:
     """Transform of real component c from the packed pairs (grid: modes per pair; at, mirror:
@@ -314,6 +366,8 @@ ctypedef struct _Cells:
     const double* fc          # densities in cell order (NULL: layer absent)
     const double* nwc
     const double* gc
+    const long* svi           # own="smooth": vesicle index of each cell-ordered source (NULL: own pairs summed)
+    const long* tvi           # and of each cell-ordered target (-1: none; a cell's targets grouped by it)
 
 
 cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
@@ -354,45 +408,62 @@ cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
                 sh[3 * nnb + 2] = b.L[2] * ((d2 - e2) // b.n[2]) if b.periodic else 0.0
                 nnb += 1
     cdef long ncol = 3 + (3 if do_sl else 0) + (6 if do_dl else 0)
-    cdef long ld = (nc + VF_BLOCK - 1) // VF_BLOCK * VF_BLOCK, i
+    cdef long ld = (nc + VF_BLOCK - 1) // VF_BLOCK * VF_BLOCK, i, n_in, t0, t1, skip
     cdef double* buf = NULL
     cdef double* col
     if nc > 0:
         buf = <double*> malloc(ld * ncol * sizeof(double))
-        # the candidates in structure-of-arrays columns of length ld: y + shift, f, nw, g
-        k = 0
-        for m in range(nnb):
-            for j in range(b.cstart[nb[m]], b.cstart[nb[m] + 1]):
-                buf[k] = b.ys[3 * j] + sh[3 * m]
-                buf[ld + k] = b.ys[3 * j + 1] + sh[3 * m + 1]
-                buf[2 * ld + k] = b.ys[3 * j + 2] + sh[3 * m + 2]
-                col = buf + 3 * ld
-                if do_sl:
-                    col[k] = b.fc[3 * j]
-                    col[ld + k] = b.fc[3 * j + 1]
-                    col[2 * ld + k] = b.fc[3 * j + 2]
-                    col = col + 3 * ld
-                if do_dl:
-                    col[k] = b.nwc[3 * j]
-                    col[ld + k] = b.nwc[3 * j + 1]
-                    col[2 * ld + k] = b.nwc[3 * j + 2]
-                    col[3 * ld + k] = b.gc[3 * j]
-                    col[4 * ld + k] = b.gc[3 * j + 1]
-                    col[5 * ld + k] = b.gc[3 * j + 2]
-                k += 1
-        for j in range(ncol):                    # the padding rows: read (masked), never summed
-            for i in range(nc, ld):
-                buf[j * ld + i] = 0.0
-    for t in range(b.tstart[c], b.tstart[c + 1]):
-        o[0] = 0.0
-        o[1] = 0.0
-        o[2] = 0.0
+    t0 = b.tstart[c]
+    while t0 < b.tstart[c + 1]:
+        # the targets t0 .. t1 - 1 share their own vesicle (own="smooth": its sources are left
+        # out of their candidates; otherwise one group, nothing skipped)
+        t1 = b.tstart[c + 1]
+        skip = -1
+        if b.svi != NULL:
+            skip = b.tvi[t0]
+            t1 = t0 + 1
+            while t1 < b.tstart[c + 1] and b.tvi[t1] == skip:
+                t1 += 1
+        n_in = 0
         if nc > 0:
-            vf_ewald_real(buf, nc, ld, b.xw + 3 * t, b.xi, b.rc2, b.mL, b.iL, b.mi_any, do_sl, do_dl, o)
-        s = b.torder[t]
-        out[3 * s] += o[0]
-        out[3 * s + 1] += o[1]
-        out[3 * s + 2] += o[2]
+            # the candidates in structure-of-arrays columns of length ld: y + shift, f, nw, g
+            k = 0
+            for m in range(nnb):
+                for j in range(b.cstart[nb[m]], b.cstart[nb[m] + 1]):
+                    if skip >= 0 and b.svi[j] == skip:
+                        continue
+                    buf[k] = b.ys[3 * j] + sh[3 * m]
+                    buf[ld + k] = b.ys[3 * j + 1] + sh[3 * m + 1]
+                    buf[2 * ld + k] = b.ys[3 * j + 2] + sh[3 * m + 2]
+                    col = buf + 3 * ld
+                    if do_sl:
+                        col[k] = b.fc[3 * j]
+                        col[ld + k] = b.fc[3 * j + 1]
+                        col[2 * ld + k] = b.fc[3 * j + 2]
+                        col = col + 3 * ld
+                    if do_dl:
+                        col[k] = b.nwc[3 * j]
+                        col[ld + k] = b.nwc[3 * j + 1]
+                        col[2 * ld + k] = b.nwc[3 * j + 2]
+                        col[3 * ld + k] = b.gc[3 * j]
+                        col[4 * ld + k] = b.gc[3 * j + 1]
+                        col[5 * ld + k] = b.gc[3 * j + 2]
+                    k += 1
+            n_in = k
+            for j in range(ncol):                    # the padding rows: read (masked), never summed
+                for i in range(n_in, ld):
+                    buf[j * ld + i] = 0.0
+        for t in range(t0, t1):
+            o[0] = 0.0
+            o[1] = 0.0
+            o[2] = 0.0
+            if n_in > 0:
+                vf_ewald_real(buf, n_in, ld, b.xw + 3 * t, b.xi, b.rc2, b.mL, b.iL, b.mi_any, do_sl, do_dl, o)
+            s = b.torder[t]
+            out[3 * s] += o[0]
+            out[3 * s + 1] += o[1]
+            out[3 * s + 2] += o[2]
+        t0 = t1
     free(buf)
 
 
@@ -406,7 +477,7 @@ class RealSpace:
     """
 
     def __init__(self, src, src_id, src_off, trg, trg_id, trg_vi, double xi, double rc, lo, length,
-                 bint periodic):
+                 bint periodic, bint skip_own=False):
         src_np = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
         trg_np = np.ascontiguousarray(trg, dtype=np.float64).reshape(-1, 3)
         ns, nt = src_np.shape[0], trg_np.shape[0]
@@ -434,7 +505,16 @@ class RealSpace:
 
         skey, tkey = key(sw), key(tw)
         sorder = np.argsort(skey, kind="stable")
-        torder = np.argsort(tkey, kind="stable")
+        vi = np.asarray(trg_vi, dtype=np.int64).reshape(-1)
+        nv = len(src_off) - 1
+        # skip_own: a cell's targets grouped by their own vesicle (one candidate buffer per group)
+        torder = np.lexsort((vi, tkey)) if skip_own else np.argsort(tkey, kind="stable")
+        self.skip_own = bool(skip_own)
+        self.svi = self.tvi = None
+        if skip_own:
+            src_vi = np.repeat(np.arange(nv, dtype=np.int64), np.diff(np.asarray(src_off, dtype=np.int64)))
+            self.svi = np.ascontiguousarray(src_vi[sorder], dtype=np.int64)
+            self.tvi = np.ascontiguousarray(vi[torder], dtype=np.int64)
         self.ncell, self.length, self.periodic, self.xi, self.rc = ncell, len_np, bool(periodic), xi, rc
         self.ns, self.nt = ns, nt
         self.sorder = sorder
@@ -447,8 +527,6 @@ class RealSpace:
         self.xw = np.ascontiguousarray(tw[torder])
         # the targets with an own vesicle grouped by it (own-vesicle sums): original indices
         # oidx, given positions xo, vesicle v's at ostart[v] .. ostart[v + 1]
-        vi = np.asarray(trg_vi, dtype=np.int64).reshape(-1)
-        nv = len(src_off) - 1
         self.oidx = np.ascontiguousarray(np.flatnonzero(vi >= 0)[np.argsort(vi[vi >= 0], kind="stable")], dtype=np.int64)
         self.xo = np.ascontiguousarray(trg_np[self.oidx]).reshape(-1, 3)
         self.ostart = np.zeros(nv + 1, dtype=np.int64)
@@ -502,12 +580,22 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
     b.fc = &fc[0, 0] if do_sl else NULL
     b.nwc = &nwc[0, 0] if do_dl else NULL
     b.gc = &gc[0, 0] if do_dl else NULL
+    cdef long[::1] svi, tvi
+    b.svi = NULL
+    b.tvi = NULL
+    if rs.skip_own:
+        svi = rs.svi
+        tvi = rs.tvi
+        b.svi = &svi[0]
+        b.tvi = &tvi[0]
     cdef double* po = &out[0, 0]
     cdef const long* pc = &tcells[0]
     cdef Py_ssize_t k, nc = tcells.shape[0]
     with nogil:
         for k in prange(nc, schedule="dynamic", chunksize=8):
             _cell_targets(&b, pc[k], po)
+    if rs.skip_own:
+        return
     # minus each vesicle's full kernel at its own targets (r = 0 skipped), the targets of a
     # vesicle 4 at a time against its sources (pairsum.h)
     own = np.zeros((xo.shape[0], 3))

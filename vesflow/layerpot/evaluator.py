@@ -20,6 +20,7 @@ from .. import sph
 from .._kernels import stokes
 from . import near as nearmod
 from .far import FarField, resolve_backend
+from .own_smooth import OwnSmoothOperators
 from .singular import SelfOperators
 
 
@@ -27,8 +28,15 @@ class Settings:
     """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
 
     def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
-                 near_blend=0.0, self_precision="double"):
+                 near_blend=0.0, self_precision="double", ewald_own="smooth"):
         self.q_self, self.q_far = q_self, q_far
+        from .ewald import OWN_MODES
+        if ewald_own not in OWN_MODES:
+            raise ValueError(f"ewald_own = {ewald_own!r}: must be one of {', '.join(OWN_MODES)}")
+        # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
+        # operators built in the set-up, vesflow.layerpot.own_smooth) or "subtract" (in the
+        # GMRES iteration); docs/far_field.md, "The own vesicle in the set-up"
+        self.ewald_own = ewald_own
         self.near_blend = float(near_blend)   # width of the near/smooth blend beyond h_n, in units of h_n
         self.near_factor, self.backend, self.fmm_eps = near_factor, backend, fmm_eps
         self.period = period or None     # triply periodic cube (or box) side, None: free space
@@ -97,6 +105,8 @@ class LayerPotentials:
         self.trg_id = np.repeat(np.asarray(self.idx, dtype=np.int64), self.Tp.npts)
         self.far = None
         self.near = None
+        self.own_ops = None
+        self.far_own = self._far_own_mode(gq)
         if part is not None:
             far_args = self._halo_setup(gq)
         self.src_id = np.repeat(self.known, mq)
@@ -107,10 +117,38 @@ class LayerPotentials:
             with _timed(timers, "far_setup"):
                 if part is None:
                     self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend,
-                                        eps=s.fmm_eps, period=s.period, double_layer=self.want_double)
+                                        eps=s.fmm_eps, period=s.period, double_layer=self.want_double,
+                                        own=self.far_own, own_skip=self._own_skip)
                 else:
                     self.far = self._far_partitioned(*far_args)
+            if self.far.smooth_own:
+                with _timed(timers, "own_setup"):
+                    n, mp = self.N, self.Tp.npts
+                    self.own_ops = OwnSmoothOperators(
+                        self.trg.reshape(n, mp, 3), gq.X.reshape(n, mq, 3), gq.dA.reshape(n, mq),
+                        (gq.normal * gq.dA[..., None]).reshape(n, mq, 3), self.far.ewald.params.xi, p,
+                        self.q_far, True, self.want_double, self.mu, dtype=s.self_dtype)
         self.n_near_pairs_total = (self.n_near_pairs if part is None else int(part.sum(self.n_near_pairs)))
+
+    def _far_own_mode(self, gq):
+        """The Ewald sum's own mode (Settings.ewald_own): "smooth" unless a vesicle is so large
+        against the period that its own periodic images could lie within the largest cutoff
+        (0.49 of the shortest period, ewald.choose_params): then "subtract"
+        (ewald.own_extent_ok).  Sets ``_own_skip`` (q-grid points per vesicle, mean area) for
+        the cost model."""
+        s = self.settings
+        area = gq.dA.reshape(self.N, -1).sum(axis=1)
+        tot = float(area.sum()) if self.part is None else self.part.sum(float(area.sum()))
+        self._own_skip = (self.Tq.npts, tot / max(self.N_total, 1))
+        if s.ewald_own != "smooth" or s.period is None:
+            return s.ewald_own
+        pts = np.concatenate([gq.X.reshape(self.N, -1, 3), self.local.points().reshape(self.N, -1, 3)], axis=1)
+        ext = (pts.max(axis=1) - pts.min(axis=1)).max(axis=0, initial=0.0)
+        if self.part is not None:
+            ext = np.array([self.part.max(float(e)) for e in ext])
+        from .ewald import own_extent_ok
+        L = np.broadcast_to(np.asarray(s.period, dtype=float), (3,))
+        return "smooth" if own_extent_ok(ext, 0.49 * float(L.min()), s.period) else "subtract"
 
     def _halo_setup(self, gq):
         """With a partition: the far-field backend (and Ewald parameters) for the whole problem,
@@ -128,7 +166,8 @@ class LayerPotentials:
         if N > 1 or s.period:
             corners = np.stack([boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)])
             backend, params = resolve_backend(s.backend, s.fmm_eps, s.period, N * mq, N * mp, corners,
-                                              N * mq * mp, self.want_double)
+                                              N * mq * mp, self.want_double,
+                                              self._own_skip if self.far_own == "smooth" else None)
         distance = float(self.h.max()) * (1.0 + 1e-6)
         if backend == "ewald":
             distance = max(distance, params.rc * (1.0 + 1e-6))
@@ -157,7 +196,8 @@ class LayerPotentials:
                             double_layer=self.want_double, ring=self.part)
         spread = (self.part, o) if backend == "ewald" else None
         return FarField(self.src, self.src_id, self.trg, self.trg_id, backend=backend, eps=s.fmm_eps,
-                        period=s.period, params=params, spread=spread, double_layer=self.want_double)
+                        period=s.period, params=params, spread=spread, double_layer=self.want_double,
+                        own=self.far_own, own_skip=self._own_skip)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
@@ -243,6 +283,14 @@ class LayerPotentials:
             u += SelfOperators.apply(self.self_ops.double, g * (1.0 - self.lam)[:, None, None])
         return u
 
+    def own_smooth_part(self, f, g=None):
+        """Coefficients E_v f_v (+ E_v^D (1 - lambda_v) g_v) that remove the own vesicle's
+        smooth share from the Ewald far field (vesflow.layerpot.own_smooth); None without it."""
+        if self.own_ops is None:
+            return None
+        gl = g * (1.0 - self.lam)[:, None, None] if (g is not None and self.want_double) else None
+        return self.own_ops.apply(f, gl)
+
     def apply(self, f, g=None, parts=None):
         """Coefficients (N, 3, C) of sum_j S_j[f_j] + D_j[g_j] on every surface (pv for own D)."""
         parts = parts if parts is not None else {}
@@ -250,6 +298,8 @@ class LayerPotentials:
             u_self = self.self_part(f, g)
         if self.far is None:
             return u_self
+        with _timed(self.timers, "far_own"):
+            u_own = self.own_smooth_part(f, g)
         fw, gq = self._densities(f, g)
         u_near, g_near = u_self, g
         if self.part is not None:
@@ -259,7 +309,10 @@ class LayerPotentials:
         with _timed(self.timers, "near"):
             vals = self._near_correct(vals, self.near, self.trg, fw, gq, u_near, g_near)
         vals = vals.reshape(self.N, -1, 3)
-        return u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
+        out = u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
+        if u_own is not None:
+            out += u_own
+        return out
 
     def _far_evaluate(self, fw, gq):
         """The far field at this rank's targets from densities over the sources it holds (the

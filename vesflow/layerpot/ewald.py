@@ -123,18 +123,29 @@ class EwaldParams:
     nufft_eps: float
     tol: float
 
-    def predicted_seconds(self, nsrc, ntrg, threads=1, ncomp=3):
-        """Cost model (:data:`COST`) of one evaluation with ``ncomp`` source components."""
-        return _predicted(self, nsrc, ntrg, threads, ncomp)
+    def predicted_seconds(self, nsrc, ntrg, threads=1, ncomp=3, own_skip=None):
+        """Cost model (:data:`COST`) of one evaluation with ``ncomp`` source components
+        (``own_skip``: as :func:`choose_params`)."""
+        return _predicted(self, nsrc, ntrg, threads, ncomp, own_skip=own_skip)
 
 
 def _kernel_width(eps):
     return min(16, max(2, math.ceil(-math.log10(eps)) + 1))
 
 
-def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
+def own_pairs_inside(rc, per_vesicle, area):
+    """Own-vesicle sources within ``rc`` of a target on a vesicle of ``per_vesicle`` sources and
+    surface ``area``: the cap of a sphere cut by a ball of radius rc about a surface point has
+    area pi rc^2 (any sphere radius, rc <= its diameter), i.e. ``per_vesicle min(1, pi rc^2 / area)``."""
+    return per_vesicle * min(1.0, math.pi * rc * rc / area) if area > 0 else per_vesicle
+
+
+def _predicted(p, nsrc, ntrg, threads, ncomp, own=0, own_skip=None):
     vol = float(np.prod(p.box))
     pairs = ntrg * nsrc * min(1.0, 4.0 / 3.0 * math.pi * p.rc ** 3 / vol) if vol > 0 else ntrg * nsrc
+    if own_skip is not None:                     # own="smooth": no own pairs, no own subtraction
+        pairs = max(0.0, pairs - ntrg * own_pairs_inside(p.rc, *own_skip))
+        own = 0
     m = float(np.prod(p.modes))
     fine = 3.4 * m
     wd = _kernel_width(p.nufft_eps) ** 3
@@ -165,10 +176,12 @@ def _modes(period, kmax):
     return tuple(int(2 * math.ceil(P * kmax / (2 * math.pi))) for P in period)
 
 
-def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, ncomp=3):
+def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, ncomp=3, own_skip=None):
     """Ewald parameters for accuracy ``tol`` (module docstring) over ``points`` (n, 3), the
     sources and targets together; ``period`` None (free space), a number (cube) or 3 numbers.
-    ``nsrc``, ``ntrg``: counts for the cost model (default: half the points each)."""
+    ``nsrc``, ``ntrg``: counts for the cost model (default: half the points each);
+    ``own_skip`` = (sources per vesicle, mean vesicle area): the real space leaves out every
+    target's own vesicle (``EwaldSum(own="smooth")``), the model counts the other pairs only."""
     if not (1e-15 < tol < 1.0):
         raise SceneError(f"Ewald accuracy -ves_far_tol must lie in (1e-15, 1), got {tol}")
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -209,7 +222,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
                         lo=tuple(float(x) for x in lo), box=tuple(float(x) for x in box),
                         periodic=period is not None, sigma=float(sigma), w=float(w),
                         nufft_eps=nufft_eps, tol=float(tol))
-        t = p.predicted_seconds(nsrc, ntrg, threads, ncomp)
+        t = p.predicted_seconds(nsrc, ntrg, threads, ncomp, own_skip)
         if best is None or t < best[0]:
             best = (t, p)
     if best is None:
@@ -358,14 +371,35 @@ def _sym6(nw, g):
     return s
 
 
+OWN_MODES = ("subtract", "smooth")
+
+
+def own_extent_ok(extent, rc, period):
+    """Whether own="smooth" is exact: every vesicle's extent per axis plus rc below the period
+    (then no periodic image of a target's own vesicle lies within rc of it), or free space."""
+    if period is None:
+        return True
+    L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,))
+    return bool(np.all(np.asarray(extent, dtype=np.float64).reshape(-1, 3).max(axis=0, initial=0.0) + rc < L))
+
+
 class EwaldSum:
     """Ewald sum over fixed sources ``src`` (S, 3) with ids ``src_id`` and targets ``trg`` (T, 3)
     with ids ``trg_id`` (module docstring); ``period`` None (free space), a number or 3 numbers;
     ``params`` an :class:`EwaldParams` (default: :func:`choose_params` for ``tol``);
-    ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`)."""
+    ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`).
+
+    ``own`` (docs/far_field.md, "The own vesicle in the set-up"): "subtract" gives the sum of
+    the module docstring (the own vesicle's pairs inside rc in the real-space sum, its full
+    kernel subtracted); "smooth" leaves every target's own vesicle out of the real-space sum and
+    subtracts nothing, so that the result ADDS ``sum_{s own} G^F(x_t - y_s) f_s`` (+ T^F) to the
+    sum of the module docstring (the Fourier part's share of the own vesicle at its given
+    position); the caller removes it (vesflow.layerpot.own_smooth).  "smooth" needs every
+    vesicle's extent plus rc below the period (:func:`own_extent_ok`); ``own_skip`` = (sources
+    per vesicle, mean area) for the cost model (:func:`choose_params`)."""
 
     def __init__(self, src, src_id, trg, trg_id, tol=1e-8, period=None, params=None, nufft=None,
-                 threads=None, double_layer=False, spread=None):
+                 threads=None, double_layer=False, spread=None, own="subtract", own_skip=None):
         self.src = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
         self.trg = np.ascontiguousarray(trg, dtype=np.float64).reshape(-1, 3)
         self.src_id = np.ascontiguousarray(src_id, dtype=np.int64).reshape(-1)
@@ -374,9 +408,13 @@ class EwaldSum:
             raise ValueError("src_id / trg_id must have one id per point")
         self.threads = _stokes.max_threads() if threads is None else max(1, int(threads))
         self.period = period
+        if own not in OWN_MODES:
+            raise ValueError(f"EwaldSum own = {own!r}: must be one of {', '.join(OWN_MODES)}")
+        self.own = own
         if params is None:
             params = choose_params(tol, np.concatenate([self.src, self.trg]), period, self.src.shape[0],
-                                   self.trg.shape[0], self.threads, 9 if double_layer else 3)
+                                   self.trg.shape[0], self.threads, 9 if double_layer else 3,
+                                   own_skip if own == "smooth" else None)
         self.params = p = params
         if nufft is None:
             nufft = DEFAULT_NUFFT if _have(DEFAULT_NUFFT) else next((n for n in NUFFT_LIBS if _have(n)), None)
@@ -398,6 +436,20 @@ class EwaldSum:
             vi = np.minimum(np.searchsorted(ids, self.trg_id), ids.size - 1)
             trg_vi = np.where(ids[vi] == self.trg_id, vi, -1).astype(np.int64)
         self._trg_vi = trg_vi
+        if own == "smooth" and p.periodic:
+            ext = np.zeros((ids.size, 3))
+            if ids.size:
+                pts = np.concatenate([self._src_sorted, self.trg[trg_vi >= 0]])
+                vix = np.concatenate([np.repeat(np.arange(ids.size), np.diff(self._src_off)), trg_vi[trg_vi >= 0]])
+                hi = np.full((ids.size, 3), -np.inf)
+                lo_ = np.full((ids.size, 3), np.inf)
+                np.maximum.at(hi, vix, pts)
+                np.minimum.at(lo_, vix, pts)
+                ext = hi - lo_
+            if not own_extent_ok(ext, p.rc, p.period):
+                raise ValueError(f"EwaldSum own = 'smooth': a vesicle's extent {ext.max(axis=0)} plus rc = {p.rc:g} "
+                                 f"reaches the period {p.period}, its own periodic images would be left out; "
+                                 "use own = 'subtract'")
         # NUFFT points in [0, 2 pi)
         lo = np.asarray(p.lo)
         per = np.asarray(p.period)
@@ -437,7 +489,8 @@ class EwaldSum:
         return a if self._perm is None else np.ascontiguousarray(a[self._perm])
 
     def real_space(self, f_w=None, nw=None, g=None):
-        """Real-space part (incl. the own-vesicle subtraction), (T, 3)."""
+        """Real-space part (own="subtract": incl. the own-vesicle subtraction; "smooth": the
+        own vesicle left out), (T, 3)."""
         p = self.params
         out = np.zeros((self.trg.shape[0], 3))
         empty = np.zeros((0, 3))
@@ -447,7 +500,8 @@ class EwaldSum:
         if self._real is None:
             box = p.period if p.periodic else tuple(np.asarray(p.box) * (1 + 1e-12) + 1e-300)
             self._real = _kernels.RealSpace(self._src_sorted, self._sid_sorted, self._src_off, self.trg,
-                                            self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box, bool(p.periodic))
+                                            self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box, bool(p.periodic),
+                                            self.own == "smooth")
         self._real.apply(f, n_, g_, out)
         return out
 

@@ -102,16 +102,17 @@ def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
 
 
 def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None,
-                    double_layer=False):
+                    double_layer=False, own_skip=None):
     """``(seconds, params)`` of the Ewald sum (single layer) over ``points`` (sources and
     targets, or any points spanning their box), ``own_pairs`` target-source pairs of the
     same vesicle (the O(N M Q) subtraction); the parameters from
     :func:`vesflow.layerpot.ewald.choose_params`; ``double_layer``: parameters accurate for
-    the stresslet too (the time is still that of the single layer)."""
+    the stresslet too (the time is still that of the single layer); ``own_skip``: the
+    own="smooth" mode (:func:`vesflow.layerpot.ewald.choose_params`)."""
     from . import ewald
     threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
-    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads, 9 if double_layer else 3)
-    return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs), p
+    p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads, 9 if double_layer else 3, own_skip)
+    return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs, own_skip), p
 
 
 def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS, t_ewald=None, periodic=False):
@@ -145,15 +146,17 @@ def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS, t_ewald=None, pe
     return backend
 
 
-def resolve_backend(backend, eps, period, nsrc, ntrg, points, own_pairs, double_layer=True):
+def resolve_backend(backend, eps, period, nsrc, ntrg, points, own_pairs, double_layer=True, own_skip=None):
     """``(backend, Ewald parameters or None)`` for ``nsrc`` sources and ``ntrg`` targets
     spanning the box of ``points`` (any points spanning it), ``own_pairs`` target-source pairs
     of the same vesicle: "auto" resolved by the cost model, the Ewald parameters chosen when
-    the backend is ewald (vesflow.layerpot.ewald.choose_params)."""
+    the backend is ewald (vesflow.layerpot.ewald.choose_params; ``own_skip``: for the
+    own="smooth" Ewald sum)."""
     t_ewald, params = None, None
     if backend == "auto" and period is None and nsrc and ntrg and _have_ewald():
         try:
-            t_ewald, params = predicted_ewald(points, nsrc, ntrg, own_pairs, eps, double_layer=double_layer)
+            t_ewald, params = predicted_ewald(points, nsrc, ntrg, own_pairs, eps, double_layer=double_layer,
+                                              own_skip=own_skip)
         except SceneError:               # no grid fits the memory: not a candidate
             t_ewald, params = None, None
     backend = choose_backend(nsrc, ntrg, backend, eps, t_ewald, periodic=period is not None)
@@ -161,7 +164,8 @@ def resolve_backend(backend, eps, period, nsrc, ntrg, points, own_pairs, double_
         return backend, None
     if params is None:
         from .ewald import choose_params
-        params = choose_params(eps, points, period, nsrc, ntrg, _stokes.max_threads(), 9 if double_layer else 3)
+        params = choose_params(eps, points, period, nsrc, ntrg, _stokes.max_threads(), 9 if double_layer else 3,
+                               own_skip)
     return backend, params
 
 
@@ -201,14 +205,19 @@ class FarField:
     """
 
     def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None,
-                 params=None, spread=None, double_layer=True, ring=None):
+                 params=None, spread=None, double_layer=True, ring=None, own="subtract", own_skip=None):
         """params: the Ewald parameters (ewald backend; default: chosen for these sources and
         targets, `resolve_backend`).  With the vesicle partition (vesflow.parallel; trg are this
         rank's): the caller resolves the backend and parameters for the whole problem;
         spread = (partition, indices of this rank's sources): the Ewald sum spreads only those
         (EwaldSum); ring = partition (direct backend): src are this rank's sources, in the
         order of `Partition.block_vesicles`, and every rank's block is passed around the ring.
-        double_layer: the Ewald parameters are made accurate for the stresslet too."""
+        double_layer: the Ewald parameters are made accurate for the stresslet too.
+        own: the ewald backend's treatment of a target's own vesicle (EwaldSum): "subtract"
+        (the sum over other vesicles, as every backend) or "smooth" (ewald only: the result
+        then also holds the own vesicle's smooth Fourier share, which the caller removes,
+        vesflow.layerpot.own_smooth; ``smooth_own`` tells whether it does); own_skip: (sources
+        per vesicle, mean area) for the cost model of "smooth"."""
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
@@ -217,10 +226,14 @@ class FarField:
             raise SceneError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
         self.eps = float(eps)
         self.period = period
+        from .ewald import OWN_MODES
+        if own not in OWN_MODES:
+            raise ValueError(f"FarField own = {own!r}: must be one of {', '.join(OWN_MODES)}")
+        skip = own_skip if own == "smooth" else None
         if backend == "auto" or (backend == "ewald" and params is None):
             backend, params = resolve_backend(backend, self.eps, period, self.src.shape[0], self.trg.shape[0],
                                               np.concatenate([self.src, self.trg]),
-                                              _own_pairs(self.src_id, self.trg_id), double_layer)
+                                              _own_pairs(self.src_id, self.trg_id), double_layer, skip)
         self.backend = choose_backend(self.src.shape[0], self.trg.shape[0], backend, self.eps,
                                       periodic=period is not None)
         self.ring = ring
@@ -233,18 +246,23 @@ class FarField:
                                  "increasing id order (Partition.block_vesicles), the same count each")
         self.n_snapped = 0
         self.ewald = None
+        self.smooth_own = False
         if self.backend == "fmm":
             self._setup_fmm()
         elif self.backend == "ewald":
             from .ewald import EwaldSum
-            # the own vesicle's pairs are summed inside rc and its full kernel subtracted: a
-            # target a rounding error away from an own source (p- and q-grid longitudes that
-            # coincide only up to rounding, e.g. q = 24 at p = 16) would cancel two 1/r ~ 1e16
-            # terms; snapped onto the source, the pair is an exact coincidence, which both
-            # sums skip (their difference, the Fourier part's self term, is subtracted)
-            trg = self._snapped_targets()
+            # own="subtract": the own vesicle's pairs are summed inside rc and its full kernel
+            # subtracted: a target a rounding error away from an own source (p- and q-grid
+            # longitudes that coincide only up to rounding, e.g. q = 24 at p = 16) would cancel
+            # two 1/r ~ 1e16 terms; snapped onto the source, the pair is an exact coincidence,
+            # which both sums skip (their difference, the Fourier part's self term, is
+            # subtracted).  own="smooth" has no own pair (G^F is smooth): targets as given, the
+            # positions the caller's correction is built at
+            trg = self.trg if own == "smooth" else self._snapped_targets()
             self.ewald = EwaldSum(self.src, self.src_id, trg, self.trg_id, tol=self.eps, period=period,
-                                  params=params, spread=spread, double_layer=double_layer)
+                                  params=params, spread=spread, double_layer=double_layer, own=own,
+                                  own_skip=skip)
+            self.smooth_own = own == "smooth"
 
     def _snapped_targets(self):
         """The targets, those within SNAP_TOL * (size of the point cloud) of a source of their
