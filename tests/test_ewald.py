@@ -186,16 +186,22 @@ def test_real_space_coefficients_without_libm(xi, rc):
     assert np.max(np.abs(0.5 * (got[:, 0] + got[:, 1]) / ec - 1)) < 1e-13
 
 
+@pytest.mark.parametrize("own", ["subtract", "smooth"])
 @pytest.mark.parametrize("period", [None, 1.7, 6.0])
-def test_avx512_and_portable_real_space_loops_agree(rng, period):
+def test_avx512_and_portable_real_space_loops_agree(rng, period, own):
     """The real-space sum by the AVX-512 loop and by the portable vectorized loop (ewaldsum.h):
-    single + double layer, own vesicles, a coincident pair, free space and periodic boxes with
-    (1.7: fewer than 5 cells per axis) and without per-pair minimum images."""
+    single + double layer, own vesicles (summed, or left out), a coincident pair, free space
+    and periodic boxes with (1.7: fewer than 5 cells per axis) and without per-pair minimum
+    images."""
     L = 6.0 if period is None else period
     src, sid, trg, tid = clusters(rng, 8, 40, L, 0.3 * min(L, 2.0), 10, free_trg=5)
     trg[0] = src[3]                                    # coincident with a source of another vesicle
+    tid[0] = -7                                        # (a free target: own="smooth" needs small vesicles)
     f, nw, g = rng.standard_normal((3, src.shape[0], 3))
-    es = ewald.EwaldSum(src, sid, trg, tid, tol=1e-8, period=period, double_layer=True)
+    rc = 0.28 * L                                      # own="smooth": extent 0.6 L + rc below L
+    params = ewald.make_params(1e-8, ewald._exponents(math.log(1e8))[0] / rc, rc, np.concatenate([src, trg]),
+                               period=period)
+    es = ewald.EwaldSum(src, sid, trg, tid, period=period, params=params, double_layer=True, own=own)
     try:
         have = ek.set_vector_path(True)
         a = es.real_space(f, nw, g)
@@ -206,6 +212,130 @@ def test_avx512_and_portable_real_space_loops_agree(rng, period):
     if not have:
         pytest.skip("no AVX-512 on this CPU")
     assert rel_err(a, b) < 1e-13
+
+
+# ------------------------------------------------------------------ own="smooth"
+def own_smooth_share(src, sid, trg, tid, f, nw, g, xi):
+    """sum over the target's own sources of G^F f + T^F:(g nw) / (8 pi) (ek.smooth_part), (T, 3)."""
+    out = np.zeros(trg.shape)
+    for t in range(trg.shape[0]):
+        own = np.flatnonzero(sid == tid[t])
+        if own.size:
+            z = np.zeros((own.size, 3))
+            r = np.ascontiguousarray(trg[t] - src[own])
+            out[t] = ek.smooth_part(r, np.ascontiguousarray(z if f is None else f[own]),
+                                    np.ascontiguousarray(z if g is None else nw[own]),
+                                    np.ascontiguousarray(z if g is None else g[own]), xi).sum(0)
+    return out
+
+
+@pytest.mark.parametrize("tol", [1e-6, 1e-10])
+@pytest.mark.parametrize("period", [None, 4.0])
+def test_own_smooth_sum_minus_the_own_smooth_share_is_the_sum_over_other_vesicles(rng, tol, period):
+    """EwaldSum(own="smooth") leaves the targets' own vesicles out of the real space and
+    subtracts nothing: minus the own sources' smooth share it is the sum over the other
+    vesicles (own="subtract", and the classical / direct sum) to tol; a cutoff below the
+    clusters' size (0.8 of it), so that many own pairs lie beyond rc; free targets (no own
+    vesicle) and a target on an own source (r = 0: G^F(0) finite)."""
+    L = 4.0 if period is None else period
+    src, sid, trg, tid = clusters(rng, 12, 60, L, 0.5, 12, free_trg=6)
+    trg[1] = src[np.flatnonzero(sid == tid[1])[0]]
+    f, nw, g = rng.standard_normal((3, src.shape[0], 3))
+    rc = 0.8
+    pts = np.concatenate([src, trg])
+    params = ewald.make_params(tol, ewald._exponents(math.log(1 / tol))[0] / rc, rc, pts, period=period)
+    smooth = ewald.EwaldSum(src, sid, trg, tid, params=params, period=period, double_layer=True, own="smooth")
+    sub = ewald.EwaldSum(src, sid, trg, tid, params=params, period=period, double_layer=True)
+    for dens in ((f, None, None), (None, nw, g)):
+        ref = np.zeros(trg.shape)
+        if period is None and dens[0] is not None:
+            stokes.stokeslet_sum_excl(src, f, sid, trg, tid, ref)
+        elif period is None:
+            stokes.stresslet_sum_excl(src, nw, g, sid, trg, tid, ref)
+        else:
+            ref = classical_ewald(src, *dens, sid, trg, tid, L, xi=4.0 / L)
+        share = own_smooth_share(src, sid, trg, tid, *dens, params.xi)
+        got = smooth.evaluate(*dens) - share
+        old = sub.evaluate(*dens)
+        rows = slice(None) if period is None else np.arange(trg.shape[0]) != 1   # classical: NaN at r = 0
+        assert np.abs(share).max() > 0.1 * np.abs(ref[rows]).max()
+        assert rel_err(got[rows], ref[rows]) < tol
+        assert rel_err(got, old) < tol
+
+
+def test_own_smooth_refuses_a_vesicle_whose_images_reach_within_rc(rng):
+    """own="smooth" leaves out every image of the own vesicle: a cluster of extent 1.2 in a
+    period of 1.7 with rc 0.6 would lose its images' real-space pairs: an error, not a result."""
+    src, sid, trg, tid = clusters(rng, 3, 30, 1.7, 0.6, 5)
+    params = ewald.make_params(1e-6, ewald._exponents(math.log(1e6))[0] / 0.6, 0.6, np.concatenate([src, trg]),
+                               period=1.7)
+    with pytest.raises(ValueError, match="own = 'smooth'"):
+        ewald.EwaldSum(src, sid, trg, tid, params=params, period=1.7, own="smooth")
+    with pytest.raises(ValueError, match="own"):
+        ewald.EwaldSum(src, sid, trg, tid, params=params, period=1.7, own="exclude")
+
+
+def test_own_smooth_operators_are_the_smooth_share_in_coefficient_space(rng):
+    """E_v f (vesflow.layerpot.own_smooth) is minus the p-grid analysis of the own smooth share
+    of the far-field densities (q-grid values times weights; the double layer with n w), one
+    biconcave vesicle, p = 6, q = 12, against ek.smooth_part pair by pair."""
+    from vesflow.layerpot.own_smooth import OwnSmoothOperators
+    p, q, xi, mu = 6, 12, 2.1, 1.7
+    S = Surface(shapes.make_shape("biconcave", p, center=(0.3, -0.2, 0.1), rotation=(0.4, 1.1, 0.2))[None], p)
+    geo = S.geometry(q)
+    x = S.points().reshape(1, -1, 3)
+    y, w = geo.X.reshape(1, -1, 3), geo.dA.reshape(1, -1)
+    nw = (geo.normal * geo.dA[..., None]).reshape(1, -1, 3)
+    E = OwnSmoothOperators(x, y, w, nw, xi, p, q, True, True, viscosity=mu)
+    C = sph.n_coeffs(p)
+    f, g = rng.standard_normal((2, 1, 3, C))
+    Tq, Tp = sph.transform(p, q), sph.transform(p)
+    fq = Tq.synth(f)[0].T * (w[0] / mu)[:, None]
+    gq = Tq.synth(g)[0].T
+    share = own_smooth_share(y[0], np.zeros(len(fq)), x[0], np.zeros(len(x[0])), fq, nw[0], gq, xi)
+    ref = -Tp.analysis(share.T[None])
+    got = E.apply(f, g)
+    assert np.abs(got - ref).max() < 1e-12 * np.abs(ref).max()
+    only_f = -Tp.analysis(own_smooth_share(y[0], np.zeros(len(fq)), x[0], np.zeros(len(x[0])), fq, None, None,
+                                           xi).T[None])
+    assert np.abs(E.apply(f) - only_f).max() < 1e-12 * np.abs(only_f).max()
+
+
+@pytest.mark.parametrize("tol, period", [(1e-6, 7.5), (1e-10, 7.5), (1e-6, None),
+                                         pytest.param(1e-10, None, marks=pytest.mark.slow)])
+def test_layer_potentials_with_the_own_vesicle_in_the_set_up_match_the_old_mode(rng, monkeypatch, tol, period):
+    """LayerPotentials.apply with the ewald far field, Settings.ewald_own "smooth" (the default)
+    against "subtract" and, in free space, against the direct backend, both layers (lambda != 1),
+    27 spheres in a periodic box, 8 in free space; the cutoff 1.2 (below the spheres' diameter:
+    most own pairs beyond it)."""
+    from vesflow.layerpot.evaluator import LayerPotentials, Settings
+    rc = 1.2
+
+    def fixed_cutoff(tol, points, period=None, *args, ncomp=3, **kw):
+        return ewald.make_params(tol, ewald._exponents(math.log(1 / tol))[0] / rc, rc, points, period)
+    monkeypatch.setattr(ewald, "choose_params", fixed_cutoff)
+    p, side = 6, (3 if period else 2)
+    ijk = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    centres = 2.5 * (ijk + 0.5) + rng.uniform(-0.1, 0.1, ijk.shape)
+    S = Surface(np.stack([shapes.make_shape("sphere", p, center=tuple(c)) for c in centres]), p)
+    n = len(centres)
+    f, g = rng.standard_normal((2, n, 3, sph.n_coeffs(p)))
+    lam = np.linspace(0.2, 4.0, n)
+    out = {}
+    for own in ("smooth", "subtract"):
+        lp = LayerPotentials(S, lam=lam, settings=Settings(backend="ewald", fmm_eps=tol, period=period, ewald_own=own))
+        assert lp.far.smooth_own == (own == "smooth") and (lp.own_ops is not None) == (own == "smooth")
+        assert lp.far.ewald.params.rc == rc
+        out[own] = lp.apply(f, g)
+        if own == "smooth":
+            lp.own_ops, ops = None, lp.own_ops
+            assert rel_err(lp.apply(f, g), out[own]) > 1e-2
+            lp.own_ops = ops
+    # the own smooth share is large: without E_v the result is wrong
+    assert rel_err(out["smooth"], out["subtract"]) < tol
+    if period is None:
+        lp = LayerPotentials(S, lam=lam, settings=Settings(backend="direct"))
+        assert rel_err(out["smooth"], lp.apply(f, g)) < tol
 
 
 # ------------------------------------------------------------------ periodic
