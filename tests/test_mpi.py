@@ -49,13 +49,14 @@ def test_partition_and_gather(part):
     assert part.max(part.rank) == 1.0 and part.sum(1) == 2 and part.any(part.rank == 1)
 
 
-@pytest.mark.parametrize("backend", ["direct", "ewald"])
-def test_layer_potentials_rows_equal_the_one_process_ones(part, backend):
+@pytest.mark.parametrize("backend, own", [("direct", "smooth"), ("ewald", "smooth"), ("ewald", "subtract")])
+def test_layer_potentials_rows_equal_the_one_process_ones(part, backend, own):
     S = Surface(coeffs(), P)
-    st = Settings(backend=backend, fmm_eps=1e-10)
+    st = Settings(backend=backend, fmm_eps=1e-10, ewald_own=own)
     serial = LayerPotentials(S, lam=LAM, settings=st)
     dist = LayerPotentials(S, lam=LAM, settings=st, part=part)
     assert dist.far.backend == serial.far.backend == backend
+    assert dist.far.smooth_own == serial.far.smooth_own == (backend == "ewald" and own == "smooth")
     assert dist.n_near_pairs_total == serial.n_near_pairs > 0
     if backend == "direct":
         # only the near-zone surface is exchanged: the middle vesicle (0, rank 0) and the right
@@ -195,6 +196,7 @@ def test_periodic_neighbours_across_the_face_are_exchanged(part):
     st = Settings(backend="ewald", fmm_eps=1e-10, period=6.0)
     serial = LayerPotentials(S, lam=[1.0, 0.5], settings=st)
     dist = LayerPotentials(S, lam=[1.0, 0.5], settings=st, part=part2)
+    assert dist.far.smooth_own and serial.far.smooth_own
     assert dist.halo.n_received == 1 and dist.n_near_pairs_total == serial.n_near_pairs > 0
     rng = np.random.default_rng(3)
     C = sph.n_coeffs(P)
