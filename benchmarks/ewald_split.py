@@ -3,9 +3,11 @@
 
 The scene of benchmarks/far_field.py (unit spheres on a jittered lattice of spacing 2.5 in
 their periodic cube), single layer, parameters from --tol; per part the best of --repeat
-process-CPU (and wall) seconds: real space (own-vesicle subtraction included), type-1 NUFFT,
-k-space multiplication, type-2 NUFFT; then the counts the cost model uses (pairs inside rc of
-the uniform-density estimate, own pairs, NUFFT points, modes) and the constants they imply.
+process-CPU (and wall) seconds: real space (--own subtract: own-vesicle subtraction included;
+smooth, the default as in LayerPotentials: the own vesicle left out), type-1 NUFFT, k-space
+multiplication, type-2 NUFFT; then the counts the cost model uses (pairs inside rc of the
+uniform-density estimate, with --own smooth minus the own ones of ewald.own_pairs_inside; own
+pairs; NUFFT points, modes) and the constants they imply.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald_split.py --n 64 512 --tol 1e-6
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald_split.py --n 512 --rc auto 1.2 1.5   # given cutoffs
@@ -45,6 +47,9 @@ def main(argv=None):
     ap.add_argument("--nufft", choices=ewald.NUFFT_LIBS, default=ewald.DEFAULT_NUFFT)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--free", action="store_true", help="free space (the lattice without its box)")
+    ap.add_argument("--own", choices=ewald.OWN_MODES, default="smooth",
+                    help="the own vesicle: left out of the real space (smooth, as LayerPotentials) or summed "
+                         "and its full kernel subtracted (subtract)")
     a = ap.parse_args(argv)
     print(f"# {'free-space' if a.free else 'periodic'} Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft}, "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load {os.getloadavg()[0]:.2f}")
@@ -63,7 +68,9 @@ def run(a, n, src, sid, trg, tid, f_w, period, rc):
     if rc is not None:
         params = ewald.make_params(a.tol, ewald._exponents(math.log(1 / a.tol), False)[0] / rc, rc,
                                    np.concatenate([src, trg]), period, double_layer=False)
-    es = ewald.EwaldSum(src, sid, trg, tid, tol=a.tol, period=period, nufft=a.nufft, params=params)
+    own_skip = (src.shape[0] // n, 4.0 * math.pi)             # unit spheres
+    es = ewald.EwaldSum(src, sid, trg, tid, tol=a.tol, period=period, nufft=a.nufft, params=params, own=a.own,
+                        own_skip=own_skip)
     pr = es.params
     es.evaluate(f_w=f_w)                                     # cell lists, plans
     _, rw, rcpu = best(lambda: es.real_space(f_w), a.repeat)
@@ -80,11 +87,14 @@ def run(a, n, src, sid, trg, tid, f_w, period, rc):
     vol = float(np.prod(pr.box))
     pairs = trg.shape[0] * src.shape[0] * 4 / 3 * math.pi * pr.rc ** 3 / vol
     own = n * (trg.shape[0] // n) * (src.shape[0] // n)
+    if a.own == "smooth":                      # the model's pairs: the other vesicles' only
+        pairs = max(pairs - trg.shape[0] * ewald.own_pairs_inside(pr.rc, *own_skip), 1.0)
+        own = 0
     m = float(np.prod(pr.modes))
     tot = rcpu + t1c + kc + t2c
     print(f"N {n:4d} xi {pr.xi:.2f} rc {pr.rc:.3f} modes {pr.modes}: real {rw:.2f} / {rcpu:.2f}  "
           f"type1 {t1w:.2f} / {t1c:.2f}  kspace {kw:.2f} / {kc:.2f}  type2 {t2w:.2f} / {t2c:.2f}  "
-          f"total cpu {tot:.2f}; model {pr.predicted_seconds(src.shape[0], trg.shape[0]):.2f}; "
+          f"total cpu {tot:.2f}; model {pr.predicted_seconds(src.shape[0], trg.shape[0], own_skip=own_skip if a.own == 'smooth' else None):.2f}; "
           f"{pairs:.3g} model pairs ({rcpu / pairs * 1e9:.2f} ns each incl. own), {own:.3g} own pairs, "
           f"{m:.3g} modes  (load {os.getloadavg()[0]:.2f})", flush=True)
 

@@ -53,6 +53,9 @@ cdef extern from "ewaldsum.h" nogil:
     void vf_ewald_real(const double* b, Py_ssize_t n, Py_ssize_t ld, const double* x, double xi, double rc2,
                        const double* mL, const double* iL, int mi, int sl, int dl, double* o)
     void vf_real_coefficients(double r, double xi, double* c)
+    void vf_smooth_row(const double* x, const double* y0, const double* y1, const double* y2, const double* w,
+                       const double* n0, const double* n1, const double* n2, Py_ssize_t S, double xi,
+                       double* sg, double* db)
     int vf_real_path_avx512
     int vf_pairsum_path(int avx512)
     int vf_avx512_available()
@@ -207,47 +210,28 @@ def smooth_kernel_tables(const double[:, ::1] x, const double[:, ::1] y, const d
         double[t, ab, s] = sum_l T^F_abl(x_t - y_s) nw[s, l] / (8 pi)
                          = (-A (delta_ab (r.nw) + nw_a r_b + r_a nw_b) + b (r.nw) r_a r_b) / (8 pi)
 
-    (module docstring; finite at r = 0, series below z = SERIES_Z).  Either output may have
-    shape (0, 0, 0) to skip it.  Writes (does not accumulate).  One thread (the callers map
-    over vesicles)."""
-    cdef Py_ssize_t T = x.shape[0], S = y.shape[0], t, k
+    (module docstring; finite at r = 0; vectorized, ewaldsum.h's vf_smooth_row: erf without
+    libm, the series below z = 1/2).  Either output may have shape (0, 0, 0) to skip it.
+    Writes (does not accumulate).  One thread (the callers map over vesicles)."""
+    cdef Py_ssize_t T = x.shape[0], S = y.shape[0], t
     cdef bint want_s = single.shape[0] > 0, want_d = double_.shape[0] > 0
     if x.shape[1] != 3 or y.shape[1] != 3 or w.shape[0] != S or (want_d and (nw.shape[0] != S or nw.shape[1] != 3)):
         raise ValueError("smooth_kernel_tables: inconsistent shapes")
     if (want_s and (single.shape[0] != T or single.shape[1] != 6 or single.shape[2] != S)) or \
        (want_d and (double_.shape[0] != T or double_.shape[1] != 6 or double_.shape[2] != S)):
         raise ValueError("smooth_kernel_tables: outputs must be (T, 6, S)")
-    cdef double r0, r1, r2, rr, ci, ca, A, bb, rn, c
+    if T == 0 or S == 0 or not (want_s or want_d):
+        return
+    cdef double[:, ::1] ys = np.ascontiguousarray(np.asarray(y).T)
+    cdef double[:, ::1] ns = np.ascontiguousarray(np.asarray(nw).T) if want_d else ys
+    cdef double* ps
+    cdef double* pd
     with nogil:
         for t in range(T):
-            for k in range(S):
-                r0 = x[t, 0] - y[k, 0]
-                r1 = x[t, 1] - y[k, 1]
-                r2 = x[t, 2] - y[k, 2]
-                rr = r0 * r0 + r1 * r1 + r2 * r2
-                if want_s:
-                    _gf_coef(rr, xi, &ci, &ca)
-                    c = w[k] * INV8PI
-                    ci = ci * c
-                    ca = ca * c
-                    single[t, 0, k] = ci + ca * r0 * r0
-                    single[t, 1, k] = ca * r0 * r1
-                    single[t, 2, k] = ca * r0 * r2
-                    single[t, 3, k] = ci + ca * r1 * r1
-                    single[t, 4, k] = ca * r1 * r2
-                    single[t, 5, k] = ci + ca * r2 * r2
-                if want_d:
-                    _tf_coef(rr, xi, &A, &bb)
-                    A = A * INV8PI
-                    bb = bb * INV8PI
-                    rn = r0 * nw[k, 0] + r1 * nw[k, 1] + r2 * nw[k, 2]
-                    c = bb * rn
-                    double_[t, 0, k] = -A * (rn + 2.0 * nw[k, 0] * r0) + c * r0 * r0
-                    double_[t, 1, k] = -A * (nw[k, 0] * r1 + r0 * nw[k, 1]) + c * r0 * r1
-                    double_[t, 2, k] = -A * (nw[k, 0] * r2 + r0 * nw[k, 2]) + c * r0 * r2
-                    double_[t, 3, k] = -A * (rn + 2.0 * nw[k, 1] * r1) + c * r1 * r1
-                    double_[t, 4, k] = -A * (nw[k, 1] * r2 + r1 * nw[k, 2]) + c * r1 * r2
-                    double_[t, 5, k] = -A * (rn + 2.0 * nw[k, 2] * r2) + c * r2 * r2
+            ps = &single[t, 0, 0] if want_s else NULL
+            pd = &double_[t, 0, 0] if want_d else NULL
+            vf_smooth_row(&x[t, 0], &ys[0, 0], &ys[1, 0], &ys[2, 0], &w[0], &ns[0, 0], &ns[1, 0], &ns[2, 0], S, xi,
+                          ps, pd)
 
 
 cdef inline double complex _unpack(const double complex* P, Py_ssize_t grid, Py_ssize_t c, Py_ssize_t at,

@@ -423,6 +423,96 @@ static void vf_ewald_real(const double *b, ptrdiff_t n, ptrdiff_t ld, const doub
     }
 }
 
+/* The smooth (Fourier) parts of the kernels of one target x against S sources (ewald.pyx's
+ * smooth_kernel_tables: G^F = ci I + ca r r^T, T^F:(. nw) with A and b; structure of arrays
+ * y0..2, weights w, nw0..2), the 6 components ab (00, 01, 02, 11, 12, 22) of each into
+ * sg[ab * S + s] and db[ab * S + s] (times w / (8 pi), resp. 1 / (8 pi)).  z = xi r >= 1/2 from
+ * erf = 1 - exp(-z^2) erfcx(z) (vf_real_parts, no libm); below, the Taylor series in z^2 of
+ * ewald.pyx (14 terms: remainder < 1e-17 relative), so that r = 0 is finite. */
+#define VF_SMOOTH_Z2 0.25
+#define VF_SMOOTH_TERMS 14
+VF_AI void vf_smooth_row_generic(const double *x, const double *y0, const double *y1, const double *y2,
+                                 const double *w, const double *n0, const double *n1, const double *n2, ptrdiff_t S,
+                                 double xi, const int want_s, const int want_d, double *sg, double *db)
+{
+    const double xi2 = xi * xi, xi3 = xi2 * xi, c8 = 1.0 / (8.0 * M_PI);
+    const double c2 = 2.0 * xi * VF_INV_SQPI;
+    /* series coefficients in z^2: erf(z)/r, ca and b (ewald.pyx's _gf_coef, _tf_coef) */
+    double ce[VF_SMOOTH_TERMS], cg[VF_SMOOTH_TERMS], cb[VF_SMOOTH_TERMS];
+    double fact = 1.0;                                    /* n! */
+    for (int n = 0; n < VF_SMOOTH_TERMS; ++n) {
+        const double sgn = (n % 2) ? -1.0 : 1.0;
+        if (n > 0)
+            fact *= n;
+        ce[n] = c2 * sgn / (fact * (2 * n + 1));                                    /* z^(2n) */
+        /* ca: (2 xi^3/sqrt(pi)) (-1)^(m+1) 2m/(2m+1) z^(2m-2)/m!, m = n + 1 */
+        cg[n] = 2.0 * xi3 * VF_INV_SQPI * sgn * (2.0 * (n + 1)) / ((2.0 * n + 3.0) * fact * (n + 1));
+        /* b: -(16 xi^5/sqrt(pi)) (-1)^m m(m-1)/((2m+1) m!) z^(2m-4), m = n + 2 */
+        cb[n] = -16.0 * xi3 * xi2 * VF_INV_SQPI * sgn * ((n + 2.0) * (n + 1.0)) / ((2.0 * n + 5.0) * fact * (n + 1.0) * (n + 2.0));
+    }
+    const double x0 = x[0], x1 = x[1], x2 = x[2];
+#pragma omp simd
+    for (ptrdiff_t s = 0; s < S; ++s) {
+        const double r0 = x0 - y0[s], r1 = x1 - y1[s], r2 = x2 - y2[s];
+        const double rr = r0 * r0 + r1 * r1 + r2 * r2, z2 = xi2 * rr;
+        const int small = z2 < VF_SMOOTH_Z2;
+        const double e = vf_exp_nonpos(-z2);
+        double ri, z, e_, E;
+        vf_real_parts(small ? 1.0 : rr, xi, &ri, &z, &e_, &E);
+        const double erfr = (1.0 - e * E) * ri;           /* erf(z) / r (large z) */
+        double pe = ce[VF_SMOOTH_TERMS - 1], pg = cg[VF_SMOOTH_TERMS - 1], pb = cb[VF_SMOOTH_TERMS - 1];
+        for (int n = VF_SMOOTH_TERMS - 2; n >= 0; --n) {
+            pe = pe * z2 + ce[n];
+            pg = pg * z2 + cg[n];
+            pb = pb * z2 + cb[n];
+        }
+        if (want_s) {
+            const double c = w[s] * c8;
+            const double ci = ((small ? pe : erfr) + c2 * e) * c;
+            const double ca = (small ? pg : (erfr - c2 * e) * ri * ri) * c;
+            sg[s] = ci + ca * r0 * r0;
+            sg[S + s] = ca * r0 * r1;
+            sg[2 * S + s] = ca * r0 * r2;
+            sg[3 * S + s] = ci + ca * r1 * r1;
+            sg[4 * S + s] = ca * r1 * r2;
+            sg[5 * S + s] = ci + ca * r2 * r2;
+        }
+        if (want_d) {
+            const double ri2 = ri * ri;
+            const double A = 4.0 * xi3 * VF_INV_SQPI * e * c8;
+            const double b = (small ? pb : -6.0 * erfr * ri2 * ri2 + (12.0 * xi * ri2 * ri2 + 8.0 * xi3 * ri2) * e * VF_INV_SQPI) * c8;
+            const double m0 = n0[s], m1 = n1[s], m2 = n2[s];
+            const double rn = r0 * m0 + r1 * m1 + r2 * m2, c = b * rn;
+            db[s] = -A * (rn + 2.0 * m0 * r0) + c * r0 * r0;
+            db[S + s] = -A * (m0 * r1 + r0 * m1) + c * r0 * r1;
+            db[2 * S + s] = -A * (m0 * r2 + r0 * m2) + c * r0 * r2;
+            db[3 * S + s] = -A * (rn + 2.0 * m1 * r1) + c * r1 * r1;
+            db[4 * S + s] = -A * (m1 * r2 + r1 * m2) + c * r1 * r2;
+            db[5 * S + s] = -A * (rn + 2.0 * m2 * r2) + c * r2 * r2;
+        }
+    }
+}
+
+#define VF_SMOOTH_VARIANT(name, WS, WD)                                                                     \
+    VF_CLONES static void name(const double *x, const double *y0, const double *y1, const double *y2,        \
+                               const double *w, const double *n0, const double *n1, const double *n2,         \
+                               ptrdiff_t S, double xi, double *sg, double *db)                                \
+    {                                                                                                       \
+        vf_smooth_row_generic(x, y0, y1, y2, w, n0, n1, n2, S, xi, WS, WD, sg, db);                         \
+    }
+VF_SMOOTH_VARIANT(vf_smooth_row_s, 1, 0)
+VF_SMOOTH_VARIANT(vf_smooth_row_d, 0, 1)
+VF_SMOOTH_VARIANT(vf_smooth_row_sd, 1, 1)
+
+static void vf_smooth_row(const double *x, const double *y0, const double *y1, const double *y2, const double *w,
+                          const double *n0, const double *n1, const double *n2, ptrdiff_t S, double xi,
+                          double *sg, double *db)
+{
+    if (sg && db) vf_smooth_row_sd(x, y0, y1, y2, w, n0, n1, n2, S, xi, sg, db);
+    else if (sg) vf_smooth_row_s(x, y0, y1, y2, w, n0, n1, n2, S, xi, sg, db);
+    else if (db) vf_smooth_row_d(x, y0, y1, y2, w, n0, n1, n2, S, xi, sg, db);
+}
+
 /* the four real-space coefficients at r > 0 (tests): c[0] = a1, c[1] = a2, c[2] = A,
  * c[3] = B r^5 (ewald.pyx's tabulated functions), scalar */
 static void vf_real_coefficients(double r, double xi, double *c)
