@@ -6,6 +6,9 @@
 
 Per rank = base + (vesicles it owns) x owned + (surfaces it holds) x surface
            + (all vesicles) x (replicated - surface) + Ewald grid.
+With the Ewald far field's own vesicle in the set-up (--ewald-own smooth, the default of
+vesflow.layerpot.own_smooth) `owned` holds one more dense 3C x 3C operator per vesicle and
+layer (5.7 MB at p = 16, single layer; in the self operators' precision).
 `owned` and `replicated` are the dense per-vesicle arrays counted from their shapes (self
 operator 3C x 3C, preconditioner parts A0 4C x 4C and S Mb 3C x 3C, LU factors 4C x 4C per
 kept dt) plus the rest, measured: the peak RSS of benchmarks/mpi_scaling.py at 8 and 64
@@ -133,6 +136,9 @@ def main(argv=None):
                     "taylor_green_1408.toml"), help="scene whose halo sizes are counted (its vesicle count "
                     "replaces --nves)")
     ap.add_argument("--fit-gb", type=float, default=24.0, help="memory per rank to fit in (GB)")
+    ap.add_argument("--ewald-own", choices=("smooth", "subtract"), default="smooth",
+                    help="the Ewald far field's own vesicle (Settings.ewald_own): smooth keeps one more dense "
+                         "3C x 3C operator per owned vesicle and layer (vesflow.layerpot.own_smooth)")
     ap.add_argument("--lu-kept", type=int, default=2, help="LU factors per vesicle kept (precond.MAX_DT_FACTORS 3; "
                     "fixed or slowly varying dt: 1-2)")
     args = ap.parse_args(argv)
@@ -141,12 +147,17 @@ def main(argv=None):
     surf = args.surface_mb * 2 ** 20
     s, parts, lu = dense_bytes(p, lu_kept=args.lu_kept)
     base, owned, surf, rest = fit(args.traced, args.held2, surf, args.rss_base)
+    # the fit's runs (mpi_scaling.py) had no Ewald far field: the own smooth operators E_v of the
+    # periodic Taylor-Green run (as many bytes as the self operators, single layer) come on top
+    own_smooth = args.ewald_own == "smooth"
     repl = surf + rest
     print(f"p = {p}: dense per vesicle: self operator {s / 2**20:.1f} MB, PC parts {parts / 2**20:.1f} MB, "
-          f"LU {lu / 2**20:.1f} MB ({args.lu_kept} kept)")
+          f"LU {lu / 2**20:.1f} MB ({args.lu_kept} kept), Ewald own smooth operator "
+          f"{(s if own_smooth else 0) / 2**20:.1f} MB (--ewald-own {args.ewald_own})")
     print(f"measured (mpi_scaling.py --trace, 1 LU kept): base {base / GB:.2f} GB, per owned vesicle "
           f"{owned / 2**20:.1f} MB, per vesicle of the suspension {repl / 2**20:.2f} MB before the halo, of which "
           f"the surface {surf / 2**20:.2f} MB (now per held surface) and the rest {rest / 2**20:.2f} MB")
+    owned += s if own_smooth else 0
     print(f"surfaces held per rank (own + halo within {distance:.3f}, the most over the ranks): "
           + ", ".join(f"{R} ranks {held[R]}" for R in sorted(held)))
 
@@ -169,7 +180,8 @@ def main(argv=None):
         "as is": owned + extra_lu,
         "SphereSpectral PC (no per-vesicle blocks)": owned + extra_lu - parts - (args.lu_kept) * dense_bytes(p)[2],
         "single-precision PC parts and LU": owned + extra_lu - (parts + args.lu_kept * dense_bytes(p)[2]) / 2,
-        "single-precision self operators too": owned + extra_lu - (parts + args.lu_kept * dense_bytes(p)[2] + s) / 2,
+        "single-precision self operators too": owned + extra_lu - (parts + args.lu_kept * dense_bytes(p)[2] + s
+                                                                   + (s if own_smooth else 0)) / 2,
     }
     for name, per_ves in opts.items():
         tot = N * per_ves + base + replicated(1) + grid      # one rank
@@ -185,6 +197,8 @@ def main(argv=None):
             s_b, parts_b, lu_b = dense_bytes(p, lu_kept=args.lu_kept, self_bytes=4 if sp == "single" else 8,
                                              pc_bytes=4 if pp == "single" else 8)
             per_own = owned + extra_lu - (s + parts + lu) + (s_b + parts_b + lu_b)
+            if own_smooth:                   # E_v in the self operators' precision
+                per_own += s_b - s
             per_rank = lambda R: base + math.ceil(N / R) * per_own + replicated(R) + grid
             fewest = next((R for R in sorted(held) if per_rank(R) <= args.fit_gb * GB), None)
             print(f"{sp:>19} {pp:>18} {per_own / 2**20:9.1f} "
