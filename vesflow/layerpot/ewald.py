@@ -33,10 +33,13 @@ Free space (af Klinteberg, Shamshirgar and Tornberg 2017 use a truncated Green's
 a padded grid, after Vico, Greengard and Ferrando 2016; here the same idea with a smooth
 window): the differences ``x - y`` of points in a box of sides ``B_a`` lie in ``(-B_a, B_a)``;
 ``phi^F`` times a window ``W`` (1 on that range to the tolerance, 0 beyond ``B_a + w``) is
-periodized with period ``P_a = 2 (B_a + w)`` and ``Psi`` is its discrete Fourier transform on
-the NUFFT grid, computed once per set-up (``-phi^F W / (8 pi)`` sampled on one octant, a
-type-1 DCT since the function is even, times the grid cell volume; stored for k >= 0 only).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, so the periodic sum
-with this ``Psi`` is the free-space ``u^F`` on the box.
+periodized with period ``P_a = 2 B_a + w`` (the least for which the images ``d + n P_a``,
+``n != 0``, of every difference ``d`` lie beyond ``B_a + w``) and ``Psi`` is its discrete Fourier
+transform on the NUFFT grid, computed once per set-up (``-sum_n phi^F W (x + n P) / (8 pi)``
+sampled on one octant, a type-1 DCT since the function is even, times the grid cell volume;
+stored for k >= 0 only).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, and the
+images vanish on ``(-B_a, B_a)``, so the periodic sum with this ``Psi`` is the free-space
+``u^F`` on the box.
 
 Parameters from the requested accuracy ``tol`` (relative to the largest velocity) by the
 error estimates of Lindbo and Tornberg (2010): real space ``~ exp(-xi^2 rc^2)``, Fourier space
@@ -50,6 +53,7 @@ spectrum has decayed at k_max) and ``w = 2 sqrt 2 sigma sqrt(ln(1/tol) + C_WINDO
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -160,6 +164,21 @@ def _exponents(lt, double_layer=True):
     return math.sqrt(zr + pref * math.log(zr)), math.sqrt(zf + pref * math.log(zf))
 
 
+def _window(lt, xi, kmax, box):
+    """``(sigma, w)`` of the free-space window for ln(1/tol) = lt (module docstring)."""
+    aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(np.max(box))))
+    sigma = math.sqrt(2.0) * aw / kmax
+    return sigma, 2.0 * math.sqrt(2.0) * sigma * aw
+
+
+def _free_period(box, w):
+    """Free-space period per axis, ``P_a = 2 B_a + w``: the differences of the points lie in
+    ``(-B_a, B_a)`` and the windowed kernel vanishes (to tol) beyond ``B_a + w``, so the images
+    ``d + n P_a`` (n != 0) of a difference lie beyond ``P_a - B_a = B_a + w``: outside the
+    kernel's support.  (``2 (B_a + w)``, the kernel's support itself, before the fourth session.)"""
+    return 2.0 * np.asarray(box, dtype=np.float64) + w
+
+
 def _modes(period, kmax):
     # K even with pi K / P >= kmax
     return tuple(int(2 * math.ceil(P * kmax / (2 * math.pi))) for P in period)
@@ -198,10 +217,8 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
         if period is not None:
             per, sigma, w = tuple(L), 0.0, 0.0
         else:
-            aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(box.max())))
-            sigma = math.sqrt(2.0) * aw / kmax
-            w = 2.0 * math.sqrt(2.0) * sigma * aw
-            per = tuple(2.0 * (box + w))
+            sigma, w = _window(lt, xi, kmax, box)
+            per = tuple(_free_period(box, w))
         modes = _modes(per, kmax)
         if float(np.prod(modes)) > MAX_MODES:
             continue
@@ -232,10 +249,8 @@ def make_params(tol, xi, rc, points, period=None, double_layer=True):
     else:
         lo = pts.min(axis=0)
         box = np.maximum(pts.max(axis=0) - lo, 1e-12)
-        aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(box.max())))
-        sigma = math.sqrt(2.0) * aw / kmax
-        w = 2.0 * math.sqrt(2.0) * sigma * aw
-        per = 2.0 * (box + w)
+        sigma, w = _window(lt, xi, kmax, box)
+        per = _free_period(box, w)
     return EwaldParams(xi=float(xi), rc=float(rc), modes=_modes(per, kmax), period=tuple(float(x) for x in per),
                        lo=tuple(float(x) for x in lo), box=tuple(float(x) for x in box),
                        periodic=period is not None, sigma=float(sigma), w=float(w),
@@ -269,19 +284,26 @@ def kernel_psi(p, threads=1):
         psi[k2 == 0.0] = 0.0
         return psi
     import scipy.fft
-    # phi^F W sampled at x_j = j P / K, j = 0 .. K/2 per axis (W even; the plane j = K/2,
-    # shared with -K/2, set to 0: W is below tol there); the DFT of the even function on the
-    # full periodic grid is the type-1 DCT of this octant
+    # the periodized K = phi^F W, sum_n K(x + n P), sampled at x_j = j P / K, j = 0 .. K/2 per
+    # axis: on [0, P/2] the images n_a = 0 and -1 (at distance P_a - x_a) count, the latter
+    # where its window is not 0, i.e. for x_a > ~B_a (the period is 2 B + w, _free_period);
+    # the DFT of the even function on the full periodic grid is the type-1 DCT of this octant
     x = [P / n * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
-    r = np.sqrt(x[0][:, None, None] ** 2 + x[1][None, :, None] ** 2 + x[2][None, None, :] ** 2)
-    phi = phi_smooth(r, p.xi)
-    del r
+    phi = np.zeros(tuple(n // 2 + 1 for n in p.modes))
+    terms = []                                   # per axis: (index range, coordinate, window)
     for a in range(3):
-        wa = _window_1d(x[a], p.box[a] + 0.5 * p.w, p.sigma)
-        wa[-1] = 0.0
-        shape = [1, 1, 1]
-        shape[a] = -1
-        phi *= wa.reshape(shape)
+        half = p.box[a] + 0.5 * p.w
+        wa = _window_1d(x[a], half, p.sigma)
+        wi = _window_1d(p.period[a] - x[a], half, p.sigma)
+        live = np.flatnonzero(wi > 0.0)
+        first = int(live[0]) if live.size else x[a].size
+        terms.append([(slice(0, None), x[a], wa),
+                      (slice(first, None), (p.period[a] - x[a])[first:], wi[first:])])
+    for (s0, x0, w0), (s1, x1, w1), (s2, x2, w2) in itertools.product(*terms):
+        if x0.size == 0 or x1.size == 0 or x2.size == 0:
+            continue
+        r = np.sqrt(x0[:, None, None] ** 2 + x1[None, :, None] ** 2 + x2[None, None, :] ** 2)
+        phi[s0, s1, s2] += phi_smooth(r, p.xi) * (w0[:, None, None] * w1[None, :, None] * w2[None, None, :])
     cell = float(np.prod([P / n for P, n in zip(p.period, p.modes)]))
     psi = scipy.fft.dctn(phi, type=1, workers=threads, overwrite_x=True)
     psi *= -cell / (8.0 * math.pi)
