@@ -45,8 +45,12 @@ def main(argv=None):
     ap.add_argument("--nufft", choices=ewald.NUFFT_LIBS, default=ewald.DEFAULT_NUFFT)
     ap.add_argument("--repeat", type=int, default=2)
     ap.add_argument("--free", action="store_true", help="free space (the lattice without its box)")
+    ap.add_argument("--nufft-eps-factor", type=float, default=ewald.NUFFT_EPS_FACTOR,
+                    help="NUFFT accuracy over tol (ewald.NUFFT_EPS_FACTOR)")
     a = ap.parse_args(argv)
-    print(f"# {'free-space' if a.free else 'periodic'} Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft}, "
+    ewald.NUFFT_EPS_FACTOR = a.nufft_eps_factor
+    print(f"# {'free-space' if a.free else 'periodic'} Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft} "
+          f"(eps {a.nufft_eps_factor:g} tol), "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load {os.getloadavg()[0]:.2f}")
     for n in a.n:
         src, sid, trg, tid, f_w, nw, g = scene(n, a.p, a.q)

@@ -425,6 +425,45 @@ def test_free_space_accuracy_with_a_large_splitting_in_a_large_box(tol, xi):
         assert rel_err(es.evaluate(*dens), ref) < tol
 
 
+def sphere_lattice(rng, n, p, q, spacing=2.5):
+    """Unit spheres on a jittered lattice as benchmarks/far_field.py: p-grid targets, q-grid
+    sources with Gauss-Legendre area weights, area-weighted random densities."""
+    side = int(np.ceil(n ** (1 / 3)))
+    ijk = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
+    centres = spacing * ijk + rng.uniform(-0.2, 0.2, (n, 3))
+
+    def grid(m):
+        x, w = np.polynomial.legendre.leggauss(m + 1)
+        x, w = x[::-1], w[::-1]
+        th, ph = np.meshgrid(np.arccos(x), np.pi * np.arange(2 * m) / m, indexing="ij")
+        pts = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+        return pts, np.repeat(w * np.pi / m, 2 * m)
+    tp, sp, sw = grid(p)[0], *grid(q)
+    trg = (centres[:, None] + tp[None]).reshape(-1, 3)
+    src = (centres[:, None] + sp[None]).reshape(-1, 3)
+    sid, tid = np.repeat(np.arange(n), sp.shape[0]), np.repeat(np.arange(n), tp.shape[0])
+    f = rng.standard_normal(src.shape) * np.tile(sw, n)[:, None]
+    nw = (src - np.repeat(centres, sp.shape[0], axis=0)) * np.tile(sw, n)[:, None]
+    return src, sid, trg, tid, f, nw, rng.standard_normal(src.shape)
+
+
+@pytest.mark.parametrize("layer", ["single", "double"])
+def test_periodic_ewald_error_at_the_nufft_accuracy_it_requests(rng, layer):
+    """The NUFFT runs at eps = NUFFT_EPS_FACTOR * tol (1.0): 8 spheres of benchmarks/far_field.py
+    (p = 16, q = 32) in a periodic box of 5 against the Ewald sum at 1e-13, single layer alone
+    (the Stokeslet's error prefactor) and double layer: error below tol / 2 at 1e-4 and 1e-6.
+    Measured 0.24 / 0.16 tol (single), 0.23 / 0.15 (double); with eps = 5 tol 1.02 / 0.43 and
+    0.69 / 0.77 tol, with 3 tol 0.55 / 0.28 and 0.34 / 0.43 (benchmarks/nufft_eps_margin.py)."""
+    src, sid, trg, tid, f, nw, g = sphere_lattice(np.random.default_rng(0), 8, 16, 32)
+    dbl = layer == "double"
+    dens = (None, nw, g) if dbl else (f, None, None)
+    ref = ewald.EwaldSum(src, sid, trg, tid, tol=1e-13, period=5.0, double_layer=dbl).evaluate(*dens)
+    for tol in (1e-4, 1e-6):
+        es = ewald.EwaldSum(src, sid, trg, tid, tol=tol, period=5.0, double_layer=dbl)
+        assert es.params.nufft_eps == pytest.approx(ewald.NUFFT_EPS_FACTOR * tol)
+        assert rel_err(es.evaluate(*dens), ref) < 0.5 * tol, (tol, es.params)
+
+
 @pytest.mark.parametrize("q", [24, 40])
 def test_ewald_far_field_with_grids_whose_shared_points_coincide_only_up_to_rounding(rng, q):
     """At p = 16 the q = 24 and 40 grids share equator points with the p-grid targets only up
