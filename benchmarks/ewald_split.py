@@ -86,9 +86,11 @@ def run(a, n, src, sid, trg, tid, f_w, period, rc):
     own = n * (trg.shape[0] // n) * (src.shape[0] // n)
     m = float(np.prod(pr.modes))
     tot = rcpu + t1c + kc + t2c
+    mp = ewald._predicted_parts(pr, src.shape[0], trg.shape[0], 3, own)
     print(f"N {n:4d} xi {pr.xi:.2f} rc {pr.rc:.3f} modes {pr.modes}: real {rw:.2f} / {rcpu:.2f}  "
           f"type1 {t1w:.2f} / {t1c:.2f}  kspace {kw:.2f} / {kc:.2f}  type2 {t2w:.2f} / {t2c:.2f}  "
-          f"total cpu {tot:.2f}; model {pr.predicted_seconds(src.shape[0], trg.shape[0]):.2f}; "
+          f"total cpu {tot:.2f}; model (own incl.) {sum(mp.values()):.2f} = {mp['real']:.2f} + {mp['type1']:.2f} + "
+          f"{mp['kspace']:.2f} + {mp['type2']:.2f}; "
           f"{pairs:.3g} model pairs ({rcpu / pairs * 1e9:.2f} ns each incl. own), {own:.3g} own pairs, "
           f"{m:.3g} modes  (load {os.getloadavg()[0]:.2f})", flush=True)
 

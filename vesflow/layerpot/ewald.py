@@ -80,17 +80,18 @@ NUFFT_EPS_FACTOR = 1.0
 DUCC0_SIGMA = (1.3, 1.6)
 DUCC0_SIGMA_MIN_EPS = 5e-11
 # cost model of the parameter choice, CPU seconds of one thread, measured with
-# benchmarks/ewald_split.py (docs/far_field.md, "Where the periodic far field's time goes"): real
-# space per (target, source) pair inside the cutoff of the uniform-density estimate (single
-# layer; about the same again for the double layer), per target (the candidate buffers of its
-# cell, the cell traversal) and per own-vesicle pair (the vectorized direct sum); NUFFT
-# spreading and interpolation per point per transform per kernel width cubed; FFT per
-# fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
-# mode per transform.  Fitted on periodic N = 512, p = 16, tol 1e-6, one thread, load ~3, at
-# rc = 0.99 / 1.2 / 1.5 / 1.8 / 2.1 (measured 8.0 / 7.1 / 6.5-6.7 / 8.3 / 11.1 s, modelled
-# 8.2 / 6.9 / 7.1 / 8.7 / 11.4 s; the choice there is rc = 1.33)
-COST = {"pair": 5.5e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 1.07e-9, "fft_point": 1.6e-9,
-        "mode": 1.0e-8}
+# benchmarks/ewald_split.py: real space per (target, source) pair inside the cutoff (the
+# estimate of _pair_fraction; single layer; about the same again for the double layer), per
+# target (the candidate buffers of its cell, the cell traversal) and per own-vesicle pair (the
+# vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
+# width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid); k-space
+# multiplication per mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
+# fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
+# and periodic N = 512 at rc 1.33, p = 16, tol 1e-6: within 25 % of each part's measurement
+# (the third session's constants pair 5.5e-9, nufft_point 1.07e-9, fft_point 1.6e-9, mode
+# 1e-8 over-predicted the free-space sums 2x)
+COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 7.6e-10, "fft_point": 4.9e-10,
+        "mode": 4.0e-9}
 # memory of the Fourier grids of one pass (complex; one grid per pair of real source components
 # plus two for the result, EwaldSum.fourier): a parameter choice keeps the double layer's pass
 # (3 + 2 grids) within it; single and double layer share one pass (5 + 2 grids) when that fits too
@@ -137,19 +138,62 @@ def _kernel_width(eps):
     return min(16, max(2, math.ceil(-math.log10(eps)) + 1))
 
 
-def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
+_BALL_RULE = None
+
+
+def _ball_rule():
+    """Quadrature of the octant of the unit ball: points (n, 3), weights (n,); Gauss-Legendre
+    16 in r, 12 x 12 in (cos theta, phi)."""
+    global _BALL_RULE
+    if _BALL_RULE is None:
+        r, wr = np.polynomial.legendre.leggauss(16)
+        r, wr = 0.5 * (r + 1), 0.5 * wr
+        u, wu = np.polynomial.legendre.leggauss(12)
+        u, wu = 0.5 * (u + 1), 0.5 * wu
+        ph, wp = np.polynomial.legendre.leggauss(12)
+        ph, wp = 0.25 * math.pi * (ph + 1), 0.25 * math.pi * wp
+        s = np.sqrt(1 - u ** 2)
+        d = np.stack([s[:, None] * np.cos(ph), s[:, None] * np.sin(ph), np.broadcast_to(u[:, None], (12, 12))], -1)
+        pts = r[:, None, None, None] * d[None]
+        w = (wr * r ** 2)[:, None, None] * (wu[:, None] * wp[None])[None]
+        _BALL_RULE = (pts.reshape(-1, 3), w.reshape(-1))
+    return _BALL_RULE
+
+
+def _pair_fraction(p):
+    """Expected fraction of (target, source) pairs closer than rc for points spread uniformly
+    over the box: periodic ``4/3 pi rc^3 / V``; free space the box's autocorrelation
+    ``prod_a (1 - |d_a| / B_a)`` integrated over the ball of radius rc, over V (the pairs near
+    the faces have fewer neighbours: 0.7x the periodic estimate at N = 32 of the scene of
+    benchmarks/far_field.py, within 5 % of the counted pairs at N = 32, 64)."""
     vol = float(np.prod(p.box))
-    pairs = ntrg * nsrc * min(1.0, 4.0 / 3.0 * math.pi * p.rc ** 3 / vol) if vol > 0 else ntrg * nsrc
+    if vol <= 0:
+        return 1.0
+    if p.periodic:
+        return min(1.0, 4.0 / 3.0 * math.pi * p.rc ** 3 / vol)
+    pts, w = _ball_rule()
+    g = np.prod(np.clip(1.0 - p.rc * pts / np.asarray(p.box), 0.0, None), axis=1)
+    return min(1.0, 8.0 * p.rc ** 3 * float(g @ w) / vol)
+
+
+def _predicted_parts(p, nsrc, ntrg, ncomp, own=0):
+    """Cost model (:data:`COST`) of one evaluation by part, one thread: real space (with the own
+    vesicle), type-1 NUFFT, k-space multiplication, type-2 NUFFT (CPU seconds)."""
+    pairs = ntrg * nsrc * _pair_fraction(p)
     m = float(np.prod(p.modes))
     fine = 3.4 * m
+    fft = COST["fft_point"] * fine * math.log2(max(fine, 2.0))
     wd = _kernel_width(p.nufft_eps) ** 3
     layers = 1 + (ncomp > 3)
     packed = (ncomp + 1) // 2                    # type-1 transforms; 2 type-2 (EwaldSum.fourier)
-    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"]
-    t += COST["nufft_point"] * wd * (packed * nsrc + 2 * ntrg)
-    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (packed + 2)
-    t += COST["mode"] * m * (packed + 2)
-    return t / max(1, threads)
+    return {"real": (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"],
+            "type1": packed * (COST["nufft_point"] * wd * nsrc + fft),
+            "kspace": COST["mode"] * m * (packed + 2),
+            "type2": 2 * (COST["nufft_point"] * wd * ntrg + fft)}
+
+
+def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
+    return sum(_predicted_parts(p, nsrc, ntrg, ncomp, own).values()) / max(1, threads)
 
 
 def _exponents(lt, double_layer=True):
