@@ -84,14 +84,16 @@ DUCC0_SIGMA_MIN_EPS = 5e-11
 # estimate of _pair_fraction; single layer; about the same again for the double layer), per
 # target (the candidate buffers of its cell, the cell traversal) and per own-vesicle pair (the
 # vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
-# width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid); k-space
-# multiplication per mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
+# width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid), times
+# (grid / 1e7)^fft_growth (large grids cost more per point: caches); k-space multiplication per
+# mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
 # fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
-# and periodic N = 512 at rc 1.33, p = 16, tol 1e-6: within 25 % of each part's measurement
-# (the third session's constants pair 5.5e-9, nufft_point 1.07e-9, fft_point 1.6e-9, mode
-# 1e-8 over-predicted the free-space sums 2x)
-COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 7.6e-10, "fft_point": 4.9e-10,
-        "mode": 4.0e-9}
+# and periodic N = 125 (dense) and 512 at 3 and 1 cutoffs, p = 16, tol 1e-6: the NUFFT parts
+# within 0.6-1.7x of each measurement (rms 24 %), the real space within 20 %, the totals at the
+# choice within 15 % (the third session's constants pair 5.5e-9, nufft_point 1.07e-9,
+# fft_point 1.6e-9, mode 1e-8 and no growth over-predicted the free-space sums 2x)
+COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 8.8e-10, "fft_point": 6.3e-10,
+        "fft_growth": 0.3, "mode": 4.0e-9}
 # memory of the Fourier grids of one pass (complex; one grid per pair of real source components
 # plus two for the result, EwaldSum.fourier): a parameter choice keeps the double layer's pass
 # (3 + 2 grids) within it; single and double layer share one pass (5 + 2 grids) when that fits too
@@ -182,7 +184,7 @@ def _predicted_parts(p, nsrc, ntrg, ncomp, own=0):
     pairs = ntrg * nsrc * _pair_fraction(p)
     m = float(np.prod(p.modes))
     fine = 3.4 * m
-    fft = COST["fft_point"] * fine * math.log2(max(fine, 2.0))
+    fft = COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (fine / 1e7) ** COST["fft_growth"]
     wd = _kernel_width(p.nufft_eps) ** 3
     layers = 1 + (ncomp > 3)
     packed = (ncomp + 1) // 2                    # type-1 transforms; 2 type-2 (EwaldSum.fourier)
