@@ -89,7 +89,7 @@ DUCC0_SIGMA_MIN_EPS = 5e-11
 # mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
 # fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
 # and periodic N = 125 (dense) and 512 at 3 and 1 cutoffs, p = 16, tol 1e-6: the NUFFT parts
-# within 0.6-1.7x of each measurement (rms 24 %), the real space within 20 %, the totals at the
+# within 0.6-1.7x of each measurement (rms 21 %), the real space within 20 %, the totals at the
 # choice within 15 % (the third session's constants pair 5.5e-9, nufft_point 1.07e-9,
 # fft_point 1.6e-9, mode 1e-8 and no growth over-predicted the free-space sums 2x)
 COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 8.8e-10, "fft_point": 6.3e-10,
@@ -195,6 +195,7 @@ def _predicted_parts(p, nsrc, ntrg, ncomp, own=0):
 
 
 def _predicted(p, nsrc, ntrg, threads, ncomp, own=0):
+    """Cost model of one evaluation, seconds with ``threads`` threads."""
     return sum(_predicted_parts(p, nsrc, ntrg, ncomp, own).values()) / max(1, threads)
 
 
