@@ -50,8 +50,12 @@ def main(argv=None):
     ap.add_argument("--own", choices=ewald.OWN_MODES, default="smooth",
                     help="the own vesicle: left out of the real space (smooth, as LayerPotentials) or summed "
                          "and its full kernel subtracted (subtract)")
+    ap.add_argument("--nufft-eps-factor", type=float, default=ewald.NUFFT_EPS_FACTOR,
+                    help="NUFFT accuracy over tol (ewald.NUFFT_EPS_FACTOR)")
     a = ap.parse_args(argv)
-    print(f"# {'free-space' if a.free else 'periodic'} Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft}, "
+    ewald.NUFFT_EPS_FACTOR = a.nufft_eps_factor
+    print(f"# {'free-space' if a.free else 'periodic'} Ewald split, p = {a.p}, q = {a.q}, tol {a.tol:g}, nufft {a.nufft} "
+          f"(eps {a.nufft_eps_factor:g} tol), "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load {os.getloadavg()[0]:.2f}")
     for n in a.n:
         src, sid, trg, tid, f_w, nw, g = scene(n, a.p, a.q)
@@ -85,17 +89,19 @@ def run(a, n, src, sid, trg, tid, f_w, period, rc):
                                                         scale, W), a.repeat)
     _, t2w, t2c = best(lambda: es._nufft.type2(W), a.repeat)
     vol = float(np.prod(pr.box))
-    pairs = trg.shape[0] * src.shape[0] * 4 / 3 * math.pi * pr.rc ** 3 / vol
+    pairs = trg.shape[0] * src.shape[0] * ewald._pair_fraction(pr)
     own = n * (trg.shape[0] // n) * (src.shape[0] // n)
     if a.own == "smooth":                      # the model's pairs: the other vesicles' only
         pairs = max(pairs - trg.shape[0] * ewald.own_pairs_inside(pr.rc, *own_skip), 1.0)
         own = 0
     m = float(np.prod(pr.modes))
     tot = rcpu + t1c + kc + t2c
+    mp = ewald._predicted_parts(pr, src.shape[0], trg.shape[0], 3, own, own_skip if a.own == "smooth" else None)
     print(f"N {n:4d} xi {pr.xi:.2f} rc {pr.rc:.3f} modes {pr.modes}: real {rw:.2f} / {rcpu:.2f}  "
           f"type1 {t1w:.2f} / {t1c:.2f}  kspace {kw:.2f} / {kc:.2f}  type2 {t2w:.2f} / {t2c:.2f}  "
-          f"total cpu {tot:.2f}; model {pr.predicted_seconds(src.shape[0], trg.shape[0], own_skip=own_skip if a.own == 'smooth' else None):.2f}; "
-          f"{pairs:.3g} model pairs ({rcpu / pairs * 1e9:.2f} ns each incl. own), {own:.3g} own pairs, "
+          f"total cpu {tot:.2f}; model{' (own incl.)' if a.own == 'subtract' else ''} {sum(mp.values()):.2f} = {mp['real']:.2f} + {mp['type1']:.2f} + "
+          f"{mp['kspace']:.2f} + {mp['type2']:.2f}; "
+          f"{pairs:.3g} model pairs ({rcpu / pairs * 1e9:.2f} ns each), {own:.3g} own pairs, "
           f"{m:.3g} modes  (load {os.getloadavg()[0]:.2f})", flush=True)
 
 

@@ -488,6 +488,20 @@ def test_farfield_ewald_backend_matches_direct_in_the_layer_potentials(rng):
     assert rel_err(out["ewald"], out["direct"]) < 1e-9
 
 
+@pytest.mark.parametrize("rc", [0.5, 1.5, 4.0])
+def test_cost_model_pair_count_in_free_space_counts_the_pairs_near_the_faces(rng, rc):
+    """The cost model's expected pairs closer than rc for uniform points in a free-space box
+    (the box's autocorrelation over the ball) against a count: within 3 %; the periodic
+    estimate 4/3 pi rc^3 / V overcounts by 1.1x, 1.5x and 3.7x here (measured: 0.3 %, 0.3 %, 0.6 % off)."""
+    box = np.array([3.0, 5.0, 8.0])
+    x = rng.uniform(0, 1, (3000, 3)) * box
+    d2 = np.sum((x[:, None, :] - x[None, :, :]) ** 2, -1)
+    counted = (np.count_nonzero(d2 < rc * rc) - x.shape[0]) / (x.shape[0] * (x.shape[0] - 1))
+    p = ewald.make_params(1e-6, 1.0, rc, np.concatenate([[0, 0, 0], box]).reshape(2, 3))
+    assert p.box == pytest.approx(tuple(box))
+    assert ewald._pair_fraction(p) == pytest.approx(counted, rel=0.03)
+
+
 def test_auto_takes_the_predicted_fastest_backend():
     from vesflow.layerpot import far
     assert far.choose_backend(1000, 1000, "auto", 1e-8, t_ewald=1e-9) == "ewald"
@@ -581,6 +595,45 @@ def test_free_space_accuracy_with_a_large_splitting_in_a_large_box(tol, xi):
         ref = np.zeros(trg.shape)
         kern(ref)
         assert rel_err(es.evaluate(*dens), ref) < tol
+
+
+def sphere_lattice(rng, n, p, q, spacing=2.5):
+    """Unit spheres on a jittered lattice as benchmarks/far_field.py: p-grid targets, q-grid
+    sources with Gauss-Legendre area weights, area-weighted random densities."""
+    side = int(np.ceil(n ** (1 / 3)))
+    ijk = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)[:n]
+    centres = spacing * ijk + rng.uniform(-0.2, 0.2, (n, 3))
+
+    def grid(m):
+        x, w = np.polynomial.legendre.leggauss(m + 1)
+        x, w = x[::-1], w[::-1]
+        th, ph = np.meshgrid(np.arccos(x), np.pi * np.arange(2 * m) / m, indexing="ij")
+        pts = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+        return pts, np.repeat(w * np.pi / m, 2 * m)
+    tp, sp, sw = grid(p)[0], *grid(q)
+    trg = (centres[:, None] + tp[None]).reshape(-1, 3)
+    src = (centres[:, None] + sp[None]).reshape(-1, 3)
+    sid, tid = np.repeat(np.arange(n), sp.shape[0]), np.repeat(np.arange(n), tp.shape[0])
+    f = rng.standard_normal(src.shape) * np.tile(sw, n)[:, None]
+    nw = (src - np.repeat(centres, sp.shape[0], axis=0)) * np.tile(sw, n)[:, None]
+    return src, sid, trg, tid, f, nw, rng.standard_normal(src.shape)
+
+
+@pytest.mark.parametrize("layer", ["single", "double"])
+def test_periodic_ewald_error_at_the_nufft_accuracy_it_requests(rng, layer):
+    """The NUFFT runs at eps = NUFFT_EPS_FACTOR * tol (1.0): 8 spheres of benchmarks/far_field.py
+    (p = 16, q = 32) in a periodic box of 5 against the Ewald sum at 1e-13, single layer alone
+    (the Stokeslet's error prefactor) and double layer: error below tol / 2 at 1e-4 and 1e-6.
+    Measured 0.24 / 0.16 tol (single), 0.23 / 0.15 (double); with eps = 5 tol 1.02 / 0.43 and
+    0.69 / 0.77 tol, with 3 tol 0.55 / 0.28 and 0.34 / 0.43 (benchmarks/nufft_eps_margin.py)."""
+    src, sid, trg, tid, f, nw, g = sphere_lattice(np.random.default_rng(0), 8, 16, 32)
+    dbl = layer == "double"
+    dens = (None, nw, g) if dbl else (f, None, None)
+    ref = ewald.EwaldSum(src, sid, trg, tid, tol=1e-13, period=5.0, double_layer=dbl).evaluate(*dens)
+    for tol in (1e-4, 1e-6):
+        es = ewald.EwaldSum(src, sid, trg, tid, tol=tol, period=5.0, double_layer=dbl)
+        assert es.params.nufft_eps == pytest.approx(ewald.NUFFT_EPS_FACTOR * tol)
+        assert rel_err(es.evaluate(*dens), ref) < 0.5 * tol, (tol, es.params)
 
 
 @pytest.mark.parametrize("own", ["subtract", "smooth"])

@@ -33,10 +33,13 @@ Free space (af Klinteberg, Shamshirgar and Tornberg 2017 use a truncated Green's
 a padded grid, after Vico, Greengard and Ferrando 2016; here the same idea with a smooth
 window): the differences ``x - y`` of points in a box of sides ``B_a`` lie in ``(-B_a, B_a)``;
 ``phi^F`` times a window ``W`` (1 on that range to the tolerance, 0 beyond ``B_a + w``) is
-periodized with period ``P_a = 2 (B_a + w)`` and ``Psi`` is its discrete Fourier transform on
-the NUFFT grid, computed once per set-up (``-phi^F W / (8 pi)`` sampled on one octant, a
-type-1 DCT since the function is even, times the grid cell volume; stored for k >= 0 only).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, so the periodic sum
-with this ``Psi`` is the free-space ``u^F`` on the box.
+periodized with period ``P_a = 2 B_a + w`` (the least for which the images ``d + n P_a``,
+``n != 0``, of every difference ``d`` lie beyond ``B_a + w``) and ``Psi`` is its discrete Fourier
+transform on the NUFFT grid, computed once per set-up (``-sum_n phi^F W (x + n P) / (8 pi)``
+sampled on one octant, a type-1 DCT since the function is even, times the grid cell volume;
+stored for k >= 0 only).  ``(Lap I - grad grad)(phi^F W) = G^F`` wherever ``W = 1``, and the
+images vanish on ``(-B_a, B_a)``, so the periodic sum with this ``Psi`` is the free-space
+``u^F`` on the box.
 
 Parameters from the requested accuracy ``tol`` (relative to the largest velocity) by the
 error estimates of Lindbo and Tornberg (2010): real space ``~ exp(-xi^2 rc^2)``, Fourier space
@@ -50,6 +53,7 @@ spectrum has decayed at k_max) and ``w = 2 sqrt 2 sigma sqrt(ln(1/tol) + C_WINDO
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -68,29 +72,28 @@ C_FOURIER = 0.0
 C_WINDOW = 2.0
 PREFACTOR_DOUBLE = 1.5
 PREFACTOR_SINGLE = 0.5
-# NUFFT accuracy requested, relative to tol (1.0 and 0.1 gave the same errors on the scene of
-# benchmarks/far_field.py at 1e-4 .. 1e-10: the NUFFT is not the limiting part)
-NUFFT_EPS_FACTOR = 0.5
+# NUFFT accuracy requested, relative to tol: with tol itself the error stays below 0.25 tol at
+# 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
+# benchmarks/nufft_eps_margin.py, docs/far_field.md "Free space, fourth session"; 0.5 before)
+NUFFT_EPS_FACTOR = 1.0
 # ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
 DUCC0_SIGMA = (1.3, 1.6)
 DUCC0_SIGMA_MIN_EPS = 5e-11
 # cost model of the parameter choice, CPU seconds of one thread, measured with
-# benchmarks/ewald_split.py (docs/far_field.md, "Where the periodic far field's time goes"): real
-# space per (target, source) pair inside the cutoff of the uniform-density estimate (single
-# layer; about the same again for the double layer), per target (the candidate buffers of its
-# cell, the cell traversal) and per own-vesicle pair (the vectorized direct sum); NUFFT
-# spreading and interpolation per point per transform per kernel width cubed; FFT per
-# fine-grid point (about 3.4 per mode) per transform per log2(grid); k-space multiplication per
-# mode per transform.  Fitted on periodic N = 512, p = 16, tol 1e-6, one thread, load ~3, at
-# rc = 0.99 / 1.2 / 1.5 / 1.8 / 2.1 (measured 8.0 / 7.1 / 6.5-6.7 / 8.3 / 11.1 s, modelled
-# 8.2 / 6.9 / 7.1 / 8.7 / 11.4 s; the choice there is rc = 1.33).  NUFFT and FFT re-fitted
-# with own="smooth" (benchmarks/ewald_split.py --n 64 128 --rc auto 1.0 1.3 1.6 2.0 2.4, one
-# thread, load ~4.5; docs/far_field.md, "The own vesicle in the set-up"): the type-1 + type-2
-# seconds of 12 runs within 0.8-1.12 of the model (they were over-predicted 1.7-2.4x, which
-# cost nothing while the real space, own pairs included, dominated); "pair" unchanged (4.0-5.9
-# ns per other-vesicle pair measured)
-COST = {"pair": 5.5e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 3.0e-10, "fft_point": 1.2e-9,
-        "mode": 1.0e-8}
+# benchmarks/ewald_split.py: real space per (target, source) pair inside the cutoff (the
+# estimate of _pair_fraction; single layer; about the same again for the double layer), per
+# target (the candidate buffers of its cell, the cell traversal) and per own-vesicle pair (the
+# vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
+# width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid), times
+# (grid / 1e7)^fft_growth (large grids cost more per point: caches); k-space multiplication per
+# mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
+# fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
+# and periodic N = 125 (dense) and 512 at 3 and 1 cutoffs, p = 16, tol 1e-6: the NUFFT parts
+# within 0.6-1.7x of each measurement (rms 21 %), the real space within 20 %, the totals at the
+# choice within 15 % (the third session's constants pair 5.5e-9, nufft_point 1.07e-9,
+# fft_point 1.6e-9, mode 1e-8 and no growth over-predicted the free-space sums 2x)
+COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 8.8e-10, "fft_point": 6.3e-10,
+        "fft_growth": 0.3, "mode": 4.0e-9}
 # memory of the Fourier grids of one pass (complex; one grid per pair of real source components
 # plus two for the result, EwaldSum.fourier): a parameter choice keeps the double layer's pass
 # (3 + 2 grids) within it; single and double layer share one pass (5 + 2 grids) when that fits too
@@ -145,22 +148,68 @@ def own_pairs_inside(rc, per_vesicle, area):
     return per_vesicle * min(1.0, math.pi * rc * rc / area) if area > 0 else per_vesicle
 
 
-def _predicted(p, nsrc, ntrg, threads, ncomp, own=0, own_skip=None):
+_BALL_RULE = None
+
+
+def _ball_rule():
+    """Quadrature of the octant of the unit ball: points (n, 3), weights (n,); Gauss-Legendre
+    16 in r, 12 x 12 in (cos theta, phi)."""
+    global _BALL_RULE
+    if _BALL_RULE is None:
+        r, wr = np.polynomial.legendre.leggauss(16)
+        r, wr = 0.5 * (r + 1), 0.5 * wr
+        u, wu = np.polynomial.legendre.leggauss(12)
+        u, wu = 0.5 * (u + 1), 0.5 * wu
+        ph, wp = np.polynomial.legendre.leggauss(12)
+        ph, wp = 0.25 * math.pi * (ph + 1), 0.25 * math.pi * wp
+        s = np.sqrt(1 - u ** 2)
+        d = np.stack([s[:, None] * np.cos(ph), s[:, None] * np.sin(ph), np.broadcast_to(u[:, None], (12, 12))], -1)
+        pts = r[:, None, None, None] * d[None]
+        w = (wr * r ** 2)[:, None, None] * (wu[:, None] * wp[None])[None]
+        _BALL_RULE = (pts.reshape(-1, 3), w.reshape(-1))
+    return _BALL_RULE
+
+
+def _pair_fraction(p):
+    """Expected fraction of (target, source) pairs closer than rc for points spread uniformly
+    over the box: periodic ``4/3 pi rc^3 / V``; free space the box's autocorrelation
+    ``prod_a (1 - |d_a| / B_a)`` integrated over the ball of radius rc, over V (the pairs near
+    the faces have fewer neighbours: 0.7x the periodic estimate at N = 32 of the scene of
+    benchmarks/far_field.py, within 5 % of the counted pairs at N = 32, 64)."""
     vol = float(np.prod(p.box))
-    pairs = ntrg * nsrc * min(1.0, 4.0 / 3.0 * math.pi * p.rc ** 3 / vol) if vol > 0 else ntrg * nsrc
-    if own_skip is not None:                     # own="smooth": no own pairs, no own subtraction
+    if vol <= 0:
+        return 1.0
+    if p.periodic:
+        return min(1.0, 4.0 / 3.0 * math.pi * p.rc ** 3 / vol)
+    pts, w = _ball_rule()
+    g = np.prod(np.clip(1.0 - p.rc * pts / np.asarray(p.box), 0.0, None), axis=1)
+    return min(1.0, 8.0 * p.rc ** 3 * float(g @ w) / vol)
+
+
+def _predicted_parts(p, nsrc, ntrg, ncomp, own=0, own_skip=None):
+    """Cost model (:data:`COST`) of one evaluation by part, one thread: real space (with the own
+    vesicle; ``own_skip`` = (sources per vesicle, mean area): without it, as
+    EwaldSum(own="smooth"): no own pairs inside rc (:func:`own_pairs_inside`), no own
+    subtraction), type-1 NUFFT, k-space multiplication, type-2 NUFFT (CPU seconds)."""
+    pairs = ntrg * nsrc * _pair_fraction(p)
+    if own_skip is not None:
         pairs = max(0.0, pairs - ntrg * own_pairs_inside(p.rc, *own_skip))
         own = 0
     m = float(np.prod(p.modes))
     fine = 3.4 * m
+    fft = COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (fine / 1e7) ** COST["fft_growth"]
     wd = _kernel_width(p.nufft_eps) ** 3
     layers = 1 + (ncomp > 3)
     packed = (ncomp + 1) // 2                    # type-1 transforms; 2 type-2 (EwaldSum.fourier)
-    t = (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"]
-    t += COST["nufft_point"] * wd * (packed * nsrc + 2 * ntrg)
-    t += COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (packed + 2)
-    t += COST["mode"] * m * (packed + 2)
-    return t / max(1, threads)
+    return {"real": (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"],
+            "type1": packed * (COST["nufft_point"] * wd * nsrc + fft),
+            "kspace": COST["mode"] * m * (packed + 2),
+            "type2": 2 * (COST["nufft_point"] * wd * ntrg + fft)}
+
+
+def _predicted(p, nsrc, ntrg, threads, ncomp, own=0, own_skip=None):
+    """Cost model of one evaluation, seconds with ``threads`` threads."""
+    return sum(_predicted_parts(p, nsrc, ntrg, ncomp, own, own_skip).values()) / max(1, threads)
 
 
 def _exponents(lt, double_layer=True):
@@ -174,6 +223,21 @@ def _exponents(lt, double_layer=True):
     zr = lt + C_REAL
     zf = lt + C_FOURIER
     return math.sqrt(zr + pref * math.log(zr)), math.sqrt(zf + pref * math.log(zf))
+
+
+def _window(lt, xi, kmax, box):
+    """``(sigma, w)`` of the free-space window for ln(1/tol) = lt (module docstring)."""
+    aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(np.max(box))))
+    sigma = math.sqrt(2.0) * aw / kmax
+    return sigma, 2.0 * math.sqrt(2.0) * sigma * aw
+
+
+def _free_period(box, w):
+    """Free-space period per axis, ``P_a = 2 B_a + w``: the differences of the points lie in
+    ``(-B_a, B_a)`` and the windowed kernel vanishes (to tol) beyond ``B_a + w``, so the images
+    ``d + n P_a`` (n != 0) of a difference lie beyond ``P_a - B_a = B_a + w``: outside the
+    kernel's support.  (``2 (B_a + w)``, the kernel's support itself, before the fourth session.)"""
+    return 2.0 * np.asarray(box, dtype=np.float64) + w
 
 
 def _modes(period, kmax):
@@ -216,10 +280,8 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
         if period is not None:
             per, sigma, w = tuple(L), 0.0, 0.0
         else:
-            aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(box.max())))
-            sigma = math.sqrt(2.0) * aw / kmax
-            w = 2.0 * math.sqrt(2.0) * sigma * aw
-            per = tuple(2.0 * (box + w))
+            sigma, w = _window(lt, xi, kmax, box)
+            per = tuple(_free_period(box, w))
         modes = _modes(per, kmax)
         if float(np.prod(modes)) > MAX_MODES:
             continue
@@ -250,10 +312,8 @@ def make_params(tol, xi, rc, points, period=None, double_layer=True):
     else:
         lo = pts.min(axis=0)
         box = np.maximum(pts.max(axis=0) - lo, 1e-12)
-        aw = math.sqrt(lt + C_WINDOW + 3.0 * math.log1p(xi * float(box.max())))
-        sigma = math.sqrt(2.0) * aw / kmax
-        w = 2.0 * math.sqrt(2.0) * sigma * aw
-        per = 2.0 * (box + w)
+        sigma, w = _window(lt, xi, kmax, box)
+        per = _free_period(box, w)
     return EwaldParams(xi=float(xi), rc=float(rc), modes=_modes(per, kmax), period=tuple(float(x) for x in per),
                        lo=tuple(float(x) for x in lo), box=tuple(float(x) for x in box),
                        periodic=period is not None, sigma=float(sigma), w=float(w),
@@ -287,19 +347,26 @@ def kernel_psi(p, threads=1):
         psi[k2 == 0.0] = 0.0
         return psi
     import scipy.fft
-    # phi^F W sampled at x_j = j P / K, j = 0 .. K/2 per axis (W even; the plane j = K/2,
-    # shared with -K/2, set to 0: W is below tol there); the DFT of the even function on the
-    # full periodic grid is the type-1 DCT of this octant
+    # the periodized K = phi^F W, sum_n K(x + n P), sampled at x_j = j P / K, j = 0 .. K/2 per
+    # axis: on [0, P/2] the images n_a = 0 and -1 (at distance P_a - x_a) count, the latter
+    # where its window is not 0, i.e. for x_a > ~B_a (the period is 2 B + w, _free_period);
+    # the DFT of the even function on the full periodic grid is the type-1 DCT of this octant
     x = [P / n * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
-    r = np.sqrt(x[0][:, None, None] ** 2 + x[1][None, :, None] ** 2 + x[2][None, None, :] ** 2)
-    phi = phi_smooth(r, p.xi)
-    del r
+    phi = np.zeros(tuple(n // 2 + 1 for n in p.modes))
+    terms = []                                   # per axis: (index range, coordinate, window)
     for a in range(3):
-        wa = _window_1d(x[a], p.box[a] + 0.5 * p.w, p.sigma)
-        wa[-1] = 0.0
-        shape = [1, 1, 1]
-        shape[a] = -1
-        phi *= wa.reshape(shape)
+        half = p.box[a] + 0.5 * p.w
+        wa = _window_1d(x[a], half, p.sigma)
+        wi = _window_1d(p.period[a] - x[a], half, p.sigma)
+        live = np.flatnonzero(wi > 0.0)
+        first = int(live[0]) if live.size else x[a].size
+        terms.append([(slice(0, None), x[a], wa),
+                      (slice(first, None), (p.period[a] - x[a])[first:], wi[first:])])
+    for (s0, x0, w0), (s1, x1, w1), (s2, x2, w2) in itertools.product(*terms):
+        if x0.size == 0 or x1.size == 0 or x2.size == 0:
+            continue
+        r = np.sqrt(x0[:, None, None] ** 2 + x1[None, :, None] ** 2 + x2[None, None, :] ** 2)
+        phi[s0, s1, s2] += phi_smooth(r, p.xi) * (w0[:, None, None] * w1[None, :, None] * w2[None, None, :])
     cell = float(np.prod([P / n for P, n in zip(p.period, p.modes)]))
     psi = scipy.fft.dctn(phi, type=1, workers=threads, overwrite_x=True)
     psi *= -cell / (8.0 * math.pi)
