@@ -77,6 +77,8 @@ class Estimate:
     solves_per_step: int = 3
     iterations_per_solve: int = ITERATIONS_PER_SOLVE
     threads: int = 1
+    mem_own: int = 0             # the Ewald far field's own smooth operators E_v (as many as the self operators)
+    t_own: float = 0.0           # their GEMV per iteration
 
     @property
     def t_step(self):
@@ -86,11 +88,11 @@ class Estimate:
 
     @property
     def t_iteration(self):
-        return self.t_forces + self.t_self + self.t_far + self.t_near
+        return self.t_forces + self.t_self + self.t_own + self.t_far + self.t_near
 
     @property
     def memory(self):
-        return self.mem_self + self.mem_pc_parts + self.mem_pc_max + self.mem_sources + self.mem_near
+        return self.mem_self + self.mem_own + self.mem_pc_parts + self.mem_pc_max + self.mem_sources + self.mem_near
 
     def __str__(self):
         mib = lambda b: f"{b / 2**20:.1f} MiB"
@@ -98,14 +100,15 @@ class Estimate:
         near = "not computed" if self.near_pairs < 0 else f"{self.near_pairs} near pairs at t = 0"
         return "\n".join([
             f"cost     per GMRES iteration ~ {ms(self.t_iteration)}: forces {ms(self.t_forces)}, "
-            f"self {ms(self.t_self)}, far ({self.far_backend}) {ms(self.t_far)}, near {ms(self.t_near)} ({near})",
+            f"self {ms(self.t_self)}, far ({self.far_backend}) {ms(self.t_far + self.t_own)}, near {ms(self.t_near)} ({near})",
             f"         per solve set-up ~ {self.t_setup:.2f} s (self operators); preconditioner "
             f"factorization ~ {self.t_pc:.2f} s (every -ves_pc_lag solves)",
             f"         per time step ~ {self.t_step:.4g} s: {self.solves_per_step} solve(s) x (set-up + "
             f"{self.iterations_per_solve} GMRES iterations, an assumed typical count); {self.threads} thread(s), "
             f"from the cost model (vesflow/costs.py)",
             f"memory   ~ {mib(self.memory)}: self operators {mib(self.mem_self)} "
-            f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''}), block "
+            f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''}"
+            f"{f'; the Ewald own smooth operators as many again, {mib(self.mem_own)}' if self.mem_own else ''}), block "
             f"preconditioner parts {mib(self.mem_pc_parts)} (N 25 C^2 x {_entry(self.pc_bytes)}) and LU "
             f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x {_entry(self.pc_bytes)}, up to 3: {mib(self.mem_pc_max)}), "
             f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
@@ -187,6 +190,10 @@ def estimate(scene, opts=None, near=True):
         else:
             backend = want
         t_far = {"fmm": t_fmm, "ewald": t_ewald}.get(backend, t_direct) or 0.0
+    # ewald: the own vesicle's smooth share removed by per-vesicle operators E_v (Settings.ewald_own
+    # "smooth", vesflow.layerpot.own_smooth): as many bytes as the self operators, one more GEMV
+    mem_own = mem_self if backend == "ewald" else 0
+    t_own = mem_own / BANDWIDTH
     t_near = max(pairs, 0) * NEAR_EVALS * Mq * NEAR_SECONDS_PER_EVAL / max(1, _threads()) * (2 if dl else 1)
     t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
@@ -195,7 +202,8 @@ def estimate(scene, opts=None, near=True):
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
-                    solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=_threads())
+                    solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=_threads(),
+                    mem_own=mem_own, t_own=t_own)
 
 
 def _ewald_seconds(scene, p, nsrc, ntrg, own_pairs, eps):
@@ -206,7 +214,10 @@ def _ewald_seconds(scene, p, nsrc, ntrg, own_pairs, eps):
     from .surface import Surface
     pts = Surface(initial_coefficients(scene), p).points().reshape(-1, 3)
     period = scene.domain.period if scene.domain is not None else None
-    return farmod.predicted_ewald(pts, nsrc, ntrg, own_pairs, eps, period=period)[0]
+    n = scene.n_vesicles
+    area = float(Surface(initial_coefficients(scene), p).area().mean()) if n else 0.0
+    own_skip = (nsrc // max(n, 1), area)          # Settings.ewald_own "smooth": no own real-space pairs
+    return farmod.predicted_ewald(pts, nsrc, ntrg, own_pairs, eps, period=period, own_skip=own_skip)[0]
 
 
 def _threads():

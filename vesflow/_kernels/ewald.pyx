@@ -29,7 +29,10 @@ included, and subtracts the own vesicle's full kernel at the given (unwrapped) p
 
     sum_{(s, n), 0 < |r| < rc} G^R(r) f_s  -  sum_{s own, r != 0} G(x_t - y_s) f_s  -  sum_{r = 0} G^F(0) f_s
 
-(and the same for ``T``).  Inside rc the own terms are ``G^R - G = -G^F``, beyond it ``-G``
+(and the same for ``T``; with ``skip_own``, EwaldSum(own="smooth"), the target's own vesicle
+is left out of the sum instead and nothing is subtracted: a cell's targets are grouped by own
+vesicle, one candidate buffer per group without that vesicle's sources).  Inside rc the own
+terms are ``G^R - G = -G^F``, beyond it ``-G``
 (``G^R`` is below tol there), so that the Fourier part over ALL sources plus this gives the
 Ewald sum without the own vesicle.  A coincident pair (``r = 0``) is skipped like the direct
 sum skips it, i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  Periodic:
@@ -457,7 +460,8 @@ class RealSpace:
 
     src (S, 3) SORTED by vesicle id, vesicle v's sources ``src_off[v] .. src_off[v+1]``,
     src_id (S,); trg (T, 3), trg_id (T,), trg_vi (T,): index v of the target's own vesicle or
-    -1; lo, length (3,): the box (periodic: the period cell; free: a box holding every point).
+    -1; lo, length (3,): the box (periodic: the period cell; free: a box holding every point);
+    skip_own: leave every target's own vesicle out, no own subtraction (module docstring).
     """
 
     def __init__(self, src, src_id, src_off, trg, trg_id, trg_vi, double xi, double rc, lo, length,

@@ -2,10 +2,12 @@
 
 Per step (geometry frozen) `LayerPotentials.__init__` does the setup: the self operators,
 the upsampled far-field sources, the near pairs (cell lists), their projections and
-interpolation weights.  `apply` is then called once per GMRES iteration:
+interpolation weights, the far field's own smooth operators (Ewald).  `apply` is then called once per GMRES iteration:
 
     self      S_hat f + D_hat g                  (per-vesicle dense operators, batched GEMM)
-    far       smooth rule over every other vesicle (direct or FMM backend)
+    far       smooth rule over every other vesicle (direct, FMM or Ewald backend; Ewald with
+              Settings.ewald_own "smooth": plus E_v f_v, per-vesicle operators of the set-up that
+              remove the own vesicle's smooth share the Ewald sum keeps, vesflow.layerpot.own_smooth)
     near      for each near (target, vesicle) pair: minus that pair's smooth rule, plus the
               near-singular value (line extrapolation through the projection)
 

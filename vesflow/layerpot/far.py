@@ -36,7 +36,9 @@ Backends
 ``"ewald"``
     The spectral Ewald sum of :mod:`vesflow.layerpot.ewald` (free space, or triply periodic
     with ``period``): O((T + S) log) at accuracy ``eps`` (relative to the largest velocity),
-    plus the O(N M Q) own-vesicle subtraction (the FMM's cost too).
+    plus the O(N M Q) own-vesicle subtraction (the FMM's cost too) with ``own="subtract"``;
+    ``own="smooth"`` leaves the own vesicle out of the real-space sum and keeps its smooth
+    Fourier share, which the caller removes (LayerPotentials: vesflow.layerpot.own_smooth).
 ``"auto"``
     The backend :func:`predicted_seconds` says is fastest (fmm only if fmm3dpy imports,
     ewald only if ducc0 or finufft does and the points are given); periodic: always ewald.
