@@ -11,7 +11,8 @@ self (batched GEMV of the dense self operators), far (Ewald; far_own: the GEMV o
 vesicle's smooth-share operators, vesflow.layerpot.own_smooth), near (pair corrections) and the
 rest (q-grid synthesis of the densities, analysis of the result); wall and process-CPU seconds
 per iteration, best of the repeats.  Memory: the self operators alone are N (3C)^2 x 8 bytes
-(21 MB per vesicle at p = 16).  The biconcave cells (2.38 wide) in random orientations touch or
+(5.7 MB per vesicle at p = 16), the own smooth operators (--own smooth, the default) as many
+again.  The biconcave cells (2.38 wide) in random orientations touch or
 intersect at spacings 2.2 and 2.5 (minimum distance 0.001 / 0.005 between their q = 48 points):
 such a scene times the iteration but its velocities are meaningless (docs/far_field.md, "The
 far/near grid degree q").
