@@ -23,6 +23,7 @@ the OpenMP and BLAS defaults of their environment until they call it.
 from __future__ import annotations
 
 import os
+import threading
 
 _state = {"limiter": None, "blas": None, "pool": None}
 
@@ -101,6 +102,12 @@ def adapt_openmp(pairs=None):
 
 
 MIN_P_THREADS = 10     # below this degree a vesicle's set-up is too small for a thread to pay
+_POOL_PREFIX = "vesflow-pool"
+
+
+def vesicle_threads(n_items):
+    """Threads map_vesicles uses for n_items tasks: min(OMP_NUM_THREADS, n_items, free_cores())."""
+    return max(1, min(openmp_threads(), int(n_items), free_cores()))
 
 
 def map_vesicles(fn, items, p=None):
@@ -111,15 +118,15 @@ def map_vesicles(fn, items, p=None):
     MIN_P_THREADS (idle machine, 2 threads vs 1: p = 6, 20 steps 0.74-0.78 s vs 0.69-0.70 s;
     p = 12: 2.75-3.12 s vs 3.79-3.89 s)."""
     items = list(items)
-    n = min(openmp_threads(), len(items), free_cores())
+    n = vesicle_threads(len(items))
     if p is not None and p < MIN_P_THREADS:
         n = 1
-    if n <= 1:
-        return [fn(i) for i in items]
+    if n <= 1 or threading.current_thread().name.startswith(_POOL_PREFIX):
+        return [fn(i) for i in items]      # (called from one of the pool's own tasks: no nesting)
     pool = _state["pool"]
     if pool is None or pool._max_workers != n:
         from concurrent.futures import ThreadPoolExecutor
         if pool is not None:
             pool.shutdown(wait=False)
-        pool = _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="vesflow")
+        pool = _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix=_POOL_PREFIX)
     return list(pool.map(fn, items))
