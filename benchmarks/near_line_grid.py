@@ -64,10 +64,12 @@ def line_changes(lp, surf, info, f, g, lam, schemes):
         off = np.arange(N + 1, dtype=np.int64) * T.npts
         fw = np.ascontiguousarray(np.moveaxis(T.synth(f), -2, -1).reshape(-1, 3) * geo.dA.reshape(-1)[:, None])
         out = np.zeros(pts.shape)
-        stokes.stokeslet_sum_blocks(src, fw, off, np.ascontiguousarray(pts), rows, out)
+        src_p = stokes.planar(src, off)
+        stokes.stokeslet_sum_blocks(src_p, stokes.planar(fw, off), off, np.ascontiguousarray(pts), rows, out)
         if g is not None:
             gq = np.ascontiguousarray(np.moveaxis(T.synth(g * (1 - lam)[:, None, None]), -2, -1).reshape(-1, 3))
-            stokes.stresslet_sum_blocks(src, nw, gq, off, np.ascontiguousarray(pts), rows, out)
+            stokes.stresslet_sum_blocks(src_p, stokes.planar(nw, off), stokes.planar(gq, off), off,
+                                        np.ascontiguousarray(pts), rows, out)
         values[q] = out
     w = info["weights"][:, 1:]
     res = {}

@@ -101,6 +101,9 @@ class LayerPotentials:
             far_args = self._halo_setup(gq)
         self.src_id = np.repeat(self.known, mq)
         self.src_off = np.arange(len(self.known) + 1, dtype=np.int64) * mq
+        # the near blocks read the sources planar, x/y/z runs per vesicle (stokes.planar)
+        self.src_planar = stokes.planar(self.src, self.src_off)
+        self.src_nw_planar = stokes.planar(self.src_nw, self.src_off)
         if self.N_total > 1 or s.period:    # periodic: a single vesicle sees its images
             with _timed(timers, "near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
@@ -298,10 +301,11 @@ class LayerPotentials:
         pairs = info["pairs"]
         # smooth rule of each pair's vesicle at its target (column 0) and line points (1 ..)
         blk = np.zeros(info["blocks"].shape)
-        stokes.stokeslet_sum_blocks(self.src, fw, self.src_off, info["blocks"], info["block_ves"], blk)
+        stokes.stokeslet_sum_blocks(self.src_planar, stokes.planar(fw, self.src_off), self.src_off, info["blocks"],
+                                    info["block_ves"], blk)
         if gq is not None:
-            stokes.stresslet_sum_blocks(self.src, self.src_nw, gq, self.src_off, info["blocks"], info["block_ves"],
-                                        blk)
+            stokes.stresslet_sum_blocks(self.src_planar, self.src_nw_planar, stokes.planar(gq, self.src_off),
+                                        self.src_off, info["blocks"], info["block_ves"], blk)
         smooth = blk[:, 0]
         line = blk[:, 1:]
         v, rows = pairs[:, 1], info["rows"]
