@@ -127,7 +127,8 @@ def map_vesicles(fn, items, p=None):
     the threads only contend (measured, p = 12 pair at load 6: 2 threads 5.6-8.0 s vs 1 thread
     4.5-4.9 s); in this thread when one is all there is, or when the degree p is below
     MIN_P_THREADS (idle machine, 2 threads vs 1: p = 6, 20 steps 0.74-0.78 s vs 0.69-0.70 s;
-    p = 12: 2.75-3.12 s vs 3.79-3.89 s)."""
+    p = 12: 2.75-3.12 s vs 3.79-3.89 s).  BLAS runs on one thread while the threads do
+    (blas_one_thread)."""
     items = list(items)
     n = vesicle_threads(len(items))
     if p is not None and p < MIN_P_THREADS:
@@ -140,4 +141,5 @@ def map_vesicles(fn, items, p=None):
         if pool is not None:
             pool.shutdown(wait=False)
         pool = _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix=_POOL_PREFIX)
-    return list(pool.map(fn, items))
+    with blas_one_thread():
+        return list(pool.map(fn, items))

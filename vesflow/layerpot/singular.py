@@ -140,7 +140,7 @@ class SelfOperators:
         operators: the product in float32).  Memory-bound (it reads every operator once: 3 GB at
         N = 512, p = 16), so the vesicles are split into one contiguous range per thread
         (vesflow.threads.map_vesicles: up to OMP_NUM_THREADS, only idle cores), each range one
-        np.matmul, which releases the GIL, with BLAS on one thread meanwhile; operators below
+        np.matmul, which releases the GIL (BLAS on one thread meanwhile); operators below
         MIN_BYTES_THREADED in one call."""
         N, _, C = density_coeffs.shape
         x = density_coeffs.reshape(N, 3 * C, 1)
@@ -153,6 +153,5 @@ class SelfOperators:
         else:
             cut = np.linspace(0, N, n + 1).round().astype(int)
             ranges = [slice(a, b) for a, b in zip(cut[:-1], cut[1:])]
-            with threads.blas_one_thread():
-                threads.map_vesicles(lambda r: np.matmul(ops[r], x[r], out=out[r]), ranges)
+            threads.map_vesicles(lambda r: np.matmul(ops[r], x[r], out=out[r]), ranges)
         return out.reshape(N, 3, C).astype(np.float64, copy=False)
