@@ -193,6 +193,23 @@ def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud):
         finally:
             stokes.set_vector_path(True)
         assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max() and np.all(out[ves == 1] == 0.0)
+    # both layers in one pass: bit for bit the Stokeslet call followed by the stresslet call
+    planar = [stokes.planar(a, off) for a in (src, f, nw, g)]
+    for k in (1, 2, 5, 9):
+        b = np.ascontiguousarray(blocks[:, :k])
+        ref = np.zeros((P, k, 3))
+        stokes.stokeslet_sum_blocks(planar[0], planar[1], off, b, ves, ref)
+        stokes.stresslet_sum_blocks(planar[0], planar[2], planar[3], off, b, ves, ref)
+        out = np.zeros((P, k, 3))
+        stokes.stokeslet_stresslet_sum_blocks(*planar, off, b, ves, out)
+        assert np.array_equal(out, ref) and np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
+    try:                                                # the compiled loops, against the K = 9 values
+        stokes.set_vector_path(False)
+        out = np.zeros((P, K, 3))
+        stokes.stokeslet_stresslet_sum_blocks(*planar, off, blocks, ves, out)
+    finally:
+        stokes.set_vector_path(True)
+    assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max()
     sp, fp = stokes.planar(src, off), stokes.planar(f, off)
     with pytest.raises(ValueError, match="at most 16"):
         stokes.stokeslet_sum_blocks(sp, fp, off, np.zeros((1, 17, 3)), np.zeros(1, dtype=np.int64),

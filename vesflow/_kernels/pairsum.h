@@ -407,6 +407,73 @@ VF_PAIRSUM_AVX512 static void vf_stresslet_planar_avx512(const double *src, cons
     default: break;
     }
 }
+
+/* Both layers at once (viscosity contrast: the near blocks need S[f] + D[g]): r, r^2 and 1/r
+ * are shared, ~40 instead of ~57 vector operations per 8 sources and target; each lane does the
+ * operations of vf_stokeslet_planar_k and vf_stresslet_planar_k, and o gets the Stokeslet sum
+ * added first, then the stresslet's: bit for bit the two separate calls.  3 targets per pass
+ * (measured as fast as 2, whose 12 accumulators and 12 source vectors fit the registers). */
+#define VF_BMT 3
+VF_PAIRSUM_AVX512 static VF_INLINE void vf_both_planar_k(const double *src, const double *f, const double *nw,
+                                                         const double *g, ptrdiff_t m, const double *x, const int K,
+                                                         double *o)
+{
+    __m512d X[VF_BMT][3], a[VF_BMT][3], b[VF_BMT][3];
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            X[k][d] = _mm512_set1_pd(x[3 * k + d]);
+            a[k][d] = _mm512_setzero_pd();
+            b[k][d] = _mm512_setzero_pd();
+        }
+    for (ptrdiff_t s = 0; s < m; s += 8) {
+        const __mmask8 valid = (__mmask8)(m - s >= 8 ? 0xFF : (1u << (m - s)) - 1u);
+        const __m512d y0 = _mm512_maskz_loadu_pd(valid, src + s), y1 = _mm512_maskz_loadu_pd(valid, src + m + s),
+                      y2 = _mm512_maskz_loadu_pd(valid, src + 2 * m + s);
+        const __m512d f0 = _mm512_maskz_loadu_pd(valid, f + s), f1 = _mm512_maskz_loadu_pd(valid, f + m + s),
+                      f2 = _mm512_maskz_loadu_pd(valid, f + 2 * m + s);
+        const __m512d n0 = _mm512_maskz_loadu_pd(valid, nw + s), n1 = _mm512_maskz_loadu_pd(valid, nw + m + s),
+                      n2 = _mm512_maskz_loadu_pd(valid, nw + 2 * m + s);
+        const __m512d g0 = _mm512_maskz_loadu_pd(valid, g + s), g1 = _mm512_maskz_loadu_pd(valid, g + m + s),
+                      g2 = _mm512_maskz_loadu_pd(valid, g + 2 * m + s);
+        for (int k = 0; k < K; ++k) {
+            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                          r2 = _mm512_sub_pd(X[k][2], y2);
+            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+            const __m512d ri = vf_rsqrt_or_0(rr, valid);
+            const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
+                                             _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
+            a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
+            a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
+            a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
+            const __m512d ri2 = _mm512_mul_pd(ri, ri);
+            const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
+            const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
+            const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
+            b[k][0] = _mm512_fmadd_pd(c, r0, b[k][0]);
+            b[k][1] = _mm512_fmadd_pd(c, r1, b[k][1]);
+            b[k][2] = _mm512_fmadd_pd(c, r2, b[k][2]);
+        }
+    }
+    const double cs = 1.0 / (8.0 * M_PI), cd = -3.0 / (4.0 * M_PI);
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * cs;
+            o[3 * k + d] += _mm512_reduce_add_pd(b[k][d]) * cd;
+        }
+}
+
+VF_PAIRSUM_AVX512 static void vf_both_planar_avx512(const double *src, const double *f, const double *nw,
+                                                    const double *g, ptrdiff_t m, const double *x, ptrdiff_t K,
+                                                    double *o)
+{
+    ptrdiff_t k = 0;
+    for (; K - k >= VF_BMT; k += VF_BMT)
+        vf_both_planar_k(src, f, nw, g, m, x + 3 * k, VF_BMT, o + 3 * k);
+    if (K - k == 2)
+        vf_both_planar_k(src, f, nw, g, m, x + 3 * k, 2, o + 3 * k);
+    else if (K - k == 1)
+        vf_both_planar_k(src, f, nw, g, m, x + 3 * k, 1, o + 3 * k);
+}
 #else
 static int vf_pairsum_use_avx512(void) { return 0; }
 static int vf_pairsum_path(int avx512) { (void)avx512; return 0; }
@@ -492,5 +559,21 @@ static void vf_stresslet_planar_targets(const double *src, const double *nw, con
 #endif
     for (ptrdiff_t k = 0; k < K; ++k)
         vf_stresslet_planar_clones(src, nw, g, m, x + 3 * k, o + 3 * k);
+}
+
+/* both layers: o[3k..] += S[f] then += D[g] at each of the K targets (the two calls above, fused) */
+static void vf_both_planar_targets(const double *src, const double *f, const double *nw, const double *g, ptrdiff_t m,
+                                   const double *x, ptrdiff_t K, double *o)
+{
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+    if (vf_pairsum_use_avx512()) {
+        vf_both_planar_avx512(src, f, nw, g, m, x, K, o);
+        return;
+    }
+#endif
+    for (ptrdiff_t k = 0; k < K; ++k) {
+        vf_stokeslet_planar_clones(src, f, m, x + 3 * k, o + 3 * k);
+        vf_stresslet_planar_clones(src, nw, g, m, x + 3 * k, o + 3 * k);
+    }
 }
 #endif

@@ -41,6 +41,8 @@ cdef extern from "pairsum.h" nogil:
                                      Py_ssize_t K, double* o)
     void vf_stresslet_planar_targets(const double* src, const double* nw, const double* g, Py_ssize_t m,
                                      const double* x, Py_ssize_t K, double* o)
+    void vf_both_planar_targets(const double* src, const double* f, const double* nw, const double* g,
+                                Py_ssize_t m, const double* x, Py_ssize_t K, double* o)
 
 cdef double INV8PI = 1.0 / (8.0 * M_PI)      # Stokeslet prefactor 1 / (8 pi mu), mu = 1
 cdef double M3_4PI = -3.0 / (4.0 * M_PI)     # stresslet prefactor -3 / (4 pi)
@@ -511,3 +513,31 @@ def stresslet_sum_blocks(const double[::1] src, const double[::1] nw, const doub
             o = src_off[ves[p]]
             m = src_off[ves[p] + 1] - o
             vf_stresslet_planar_targets(ps + 3 * o, pn + 3 * o, pg + 3 * o, m, &trg[p, 0, 0], K, &out[p, 0, 0])
+
+
+def stokeslet_stresslet_sum_blocks(const double[::1] src, const double[::1] f, const double[::1] nw,
+                                   const double[::1] g, const long[::1] src_off, const double[:, :, ::1] trg,
+                                   const long[::1] ves, double[:, :, ::1] out):
+    """:func:`stokeslet_sum_blocks` (density f) then :func:`stresslet_sum_blocks` (nw, g) in one
+    pass over the sources, sharing r and 1/r: bit for bit the two calls, ~0.7x their time.  All
+    source arrays planar (:func:`planar`); trg, out: (P, K, 3)."""
+    cdef Py_ssize_t ns = src_off[src_off.shape[0] - 1] if src_off.shape[0] else 0
+    _check_planar("src", src, ns); _check_planar("f", f, ns); _check_planar("nw", nw, ns); _check_planar("g", g, ns)
+    _check_blocks(trg, ves, src_off, ns, out)
+    cdef Py_ssize_t p, n = trg.shape[0]
+    cdef int K = trg.shape[1]
+    if n == 0 or K == 0:
+        return
+    cdef const double* ps = &src[0]
+    cdef const double* pf = &f[0]
+    cdef const double* pn = &nw[0]
+    cdef const double* pg = &g[0]
+    cdef long[::1] order = np.argsort(ves, kind="stable")
+    cdef Py_ssize_t k, o, m
+    with nogil:
+        for k in prange(n, schedule="dynamic", chunksize=16):
+            p = order[k]
+            o = src_off[ves[p]]
+            m = src_off[ves[p] + 1] - o
+            vf_both_planar_targets(ps + 3 * o, pf + 3 * o, pn + 3 * o, pg + 3 * o, m, &trg[p, 0, 0], K,
+                                   &out[p, 0, 0])

@@ -301,11 +301,13 @@ class LayerPotentials:
         pairs = info["pairs"]
         # smooth rule of each pair's vesicle at its target (column 0) and line points (1 ..)
         blk = np.zeros(info["blocks"].shape)
-        stokes.stokeslet_sum_blocks(self.src_planar, stokes.planar(fw, self.src_off), self.src_off, info["blocks"],
-                                    info["block_ves"], blk)
-        if gq is not None:
-            stokes.stresslet_sum_blocks(self.src_planar, self.src_nw_planar, stokes.planar(gq, self.src_off),
-                                        self.src_off, info["blocks"], info["block_ves"], blk)
+        fp = stokes.planar(fw, self.src_off)
+        if gq is None:
+            stokes.stokeslet_sum_blocks(self.src_planar, fp, self.src_off, info["blocks"], info["block_ves"], blk)
+        else:                          # both layers in one pass over the sources (the same values)
+            stokes.stokeslet_stresslet_sum_blocks(self.src_planar, fp, self.src_nw_planar,
+                                                  stokes.planar(gq, self.src_off), self.src_off, info["blocks"],
+                                                  info["block_ves"], blk)
         smooth = blk[:, 0]
         line = blk[:, 1:]
         v, rows = pairs[:, 1], info["rows"]
