@@ -172,12 +172,12 @@ VF_PAIRSUM_AVX512 static inline void vf_load3x8(const double *p, ptrdiff_t s, in
 /* 1/sqrt(rr) for rr > 0, 0 for rr = 0 or a lane outside `valid` */
 VF_PAIRSUM_AVX512 static inline __m512d vf_rsqrt_or_0(__m512d rr, __mmask8 valid)
 {
+    /* the estimate is 0 outside `pos`, and the Newton steps keep it 0 there (h y = 0) */
     const __mmask8 pos = _mm512_mask_cmp_pd_mask(valid, rr, _mm512_setzero_pd(), _CMP_GT_OQ);
-    const __m512d a = _mm512_mask_blend_pd(pos, _mm512_set1_pd(1.0), rr);
-    __m512d y = _mm512_rsqrt14_pd(a);
-    const __m512d h = _mm512_mul_pd(a, _mm512_set1_pd(0.5)), c = _mm512_set1_pd(1.5);
+    __m512d y = _mm512_maskz_rsqrt14_pd(pos, rr);
+    const __m512d h = _mm512_mul_pd(rr, _mm512_set1_pd(0.5)), c = _mm512_set1_pd(1.5);
     y = _mm512_mul_pd(y, _mm512_fnmadd_pd(_mm512_mul_pd(h, y), y, c));
-    return _mm512_maskz_mul_pd(pos, y, _mm512_fnmadd_pd(_mm512_mul_pd(h, y), y, c));
+    return _mm512_mul_pd(y, _mm512_fnmadd_pd(_mm512_mul_pd(h, y), y, c));
 }
 
 VF_PAIRSUM_AVX512 static void vf_stokeslet_range_avx512(const double *src, const double *f, ptrdiff_t s0, ptrdiff_t s1,
