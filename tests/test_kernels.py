@@ -179,15 +179,49 @@ def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud):
                                             (stokes.stresslet_sum_pairs, stokes.stresslet_sum_blocks, (nw, g))):
         ref = np.zeros((P * K, 3))
         pair_kernel(src, *dens, off, blocks.reshape(-1, 3), pairs, ref)
+        ref = ref.reshape(P, K, 3)
+        planar = [stokes.planar(a, off) for a in (src,) + dens]
+        for k in (9, 5, 4, 2, 1):                       # passes of 3 targets and the shorter rest
+            out = np.zeros((P, k, 3))
+            block_kernel(*planar, off, np.ascontiguousarray(blocks[:, :k]), ves, out)
+            assert np.array_equal(out, ref[:, :k]) and np.all(np.isfinite(out))
+            assert np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
+        try:                                            # the compiled (non-AVX-512) loops
+            stokes.set_vector_path(False)
+            out = np.zeros((P, K, 3))
+            block_kernel(*planar, off, blocks, ves, out)
+        finally:
+            stokes.set_vector_path(True)
+        assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max() and np.all(out[ves == 1] == 0.0)
+    # both layers in one pass: bit for bit the Stokeslet call followed by the stresslet call
+    planar = [stokes.planar(a, off) for a in (src, f, nw, g)]
+    for k in (1, 2, 5, 9):
+        b = np.ascontiguousarray(blocks[:, :k])
+        ref = np.zeros((P, k, 3))
+        stokes.stokeslet_sum_blocks(planar[0], planar[1], off, b, ves, ref)
+        stokes.stresslet_sum_blocks(planar[0], planar[2], planar[3], off, b, ves, ref)
+        out = np.zeros((P, k, 3))
+        stokes.stokeslet_stresslet_sum_blocks(*planar, off, b, ves, out)
+        assert np.array_equal(out, ref) and np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
+    try:                                                # the compiled loops, against the K = 9 values
+        stokes.set_vector_path(False)
         out = np.zeros((P, K, 3))
-        block_kernel(src, *dens, off, blocks, ves, out)
-        assert np.array_equal(out.reshape(-1, 3), ref) and np.all(np.isfinite(out))
-        assert np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
+        stokes.stokeslet_stresslet_sum_blocks(*planar, off, blocks, ves, out)
+    finally:
+        stokes.set_vector_path(True)
+    assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max()
+    sp, fp = stokes.planar(src, off), stokes.planar(f, off)
     with pytest.raises(ValueError, match="at most 16"):
-        stokes.stokeslet_sum_blocks(src, f, off, np.zeros((1, 17, 3)), np.zeros(1, dtype=np.int64),
+        stokes.stokeslet_sum_blocks(sp, fp, off, np.zeros((1, 17, 3)), np.zeros(1, dtype=np.int64),
                                     np.zeros((1, 17, 3)))
     with pytest.raises(ValueError, match="not a vesicle index"):
-        stokes.stokeslet_sum_blocks(src, f, off, blocks[:1], np.array([5]), np.zeros((1, K, 3)))
+        stokes.stokeslet_sum_blocks(sp, fp, off, blocks[:1], np.array([5]), np.zeros((1, K, 3)))
+    with pytest.raises(ValueError, match="must be planar"):
+        stokes.stokeslet_sum_blocks(sp[:-3], fp, off, blocks[:1], ves[:1], np.zeros((1, K, 3)))
+    # the planar layout: vesicle v's x, y, z runs from 3 off[v]
+    for v in range(sizes.size):
+        o, m = off[v], off[v + 1] - off[v]
+        assert np.array_equal(sp[3 * o:3 * (o + m)].reshape(3, m), src[o:o + m].T)
 
 
 # ----------------------------------------------------------------------------- near search

@@ -79,3 +79,61 @@ def test_openmp_threads_follow_the_idle_cores(monkeypatch):
         assert threads.adapt_openmp() == 1 and series.get_max_threads() == 1
     finally:
         series.set_num_threads(threads.openmp_threads())
+
+
+def test_self_operators_apply_threaded_over_vesicle_ranges_equals_one_product(monkeypatch):
+    """SelfOperators.apply splits the vesicles into one range per free thread (the same
+    products, bit for bit); below MIN_BYTES_THREADED, or with one free core, it is one call."""
+    import threading
+    import numpy as np
+    from vesflow.layerpot import singular
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(threads, "other_runnable", lambda: 0)
+    rng = np.random.default_rng(0)
+    N, C = 5, 8
+    ops = rng.standard_normal((N, 3 * C, 3 * C))
+    x = rng.standard_normal((N, 3, C))
+    ref = np.stack([(ops[v] @ x[v].reshape(-1)).reshape(3, C) for v in range(N)])
+    calls = []
+    real = np.matmul
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads():
+        return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    def spy(a, b, out=None):
+        calls.append((len(a), threading.current_thread().name, blas_threads()))
+        return real(a, b, out=out)
+    monkeypatch.setattr(singular.np, "matmul", spy)
+    monkeypatch.setattr(singular, "MIN_BYTES_THREADED", 0)
+    with threadpool_limits(limits=2, user_api="blas"):        # BLAS on one thread during the ranges only
+        for dtype, tol in ((np.float64, 0.0), (np.float32, 1e-5)):
+            calls.clear()
+            u = singular.SelfOperators.apply(ops.astype(dtype), x)
+            assert u.dtype == np.float64 and np.abs(u - ref).max() <= tol * np.abs(ref).max()
+            assert sorted(n for n, _, _ in calls) == [2, 3] and all(t.startswith("vesflow") for _, t, _ in calls)
+            assert [b for _, _, b in calls] == [1, 1] and blas_threads() == 2
+    calls.clear()
+    monkeypatch.setattr(singular, "MIN_BYTES_THREADED", ops.nbytes + 1)
+    assert np.array_equal(singular.SelfOperators.apply(ops, x), ref)
+    assert [n for n, _, _ in calls] == [N]
+    calls.clear()
+    monkeypatch.setattr(singular, "MIN_BYTES_THREADED", 0)
+    monkeypatch.setattr(threads, "other_runnable", lambda: 1)                # the other core busy
+    assert np.array_equal(singular.SelfOperators.apply(ops, x), ref) and [n for n, _, _ in calls] == [N]
+
+
+def test_map_vesicles_called_from_its_own_task_runs_in_that_thread(monkeypatch):
+    """A task of the pool that maps again (e.g. a self-operator apply inside a per-vesicle
+    set-up) must not wait for the pool it occupies: the inner map runs in the task's thread."""
+    import threading
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(threads, "other_runnable", lambda: 0)
+
+    def outer(i):
+        me = threading.current_thread().name
+        inner = threads.map_vesicles(lambda j: threading.current_thread().name, range(3))
+        return i, inner == [me] * 3
+    assert threads.map_vesicles(outer, range(4)) == [(i, True) for i in range(4)]

@@ -72,6 +72,53 @@ VF_CLONES static void vf_stresslet_range_clones(const double *src, const double 
     o[1] += a1 * c;
     o[2] += a2 * c;
 }
+/* The same two sums over the m sources of one vesicle stored planar: x[0..m), y[0..m), z[0..m)
+ * at src, src + m, src + 2m (likewise the densities): the near blocks' layout (stokes.planar),
+ * which the vector loops read without de-interleaving. */
+VF_CLONES static void vf_stokeslet_planar_clones(const double *src, const double *f, ptrdiff_t m, const double *x,
+                                                 double *o)
+{
+    const double x0 = x[0], x1 = x[1], x2 = x[2];
+    double a0 = 0.0, a1 = 0.0, a2 = 0.0;
+#pragma omp simd reduction(+ : a0, a1, a2)
+    for (ptrdiff_t s = 0; s < m; ++s) {
+        const double r0 = x0 - src[s], r1 = x1 - src[m + s], r2 = x2 - src[2 * m + s];
+        const double rr = r0 * r0 + r1 * r1 + r2 * r2;
+        const double ri = rr > 0.0 ? 1.0 / sqrt(rr) : 0.0;
+        const double f0 = f[s], f1 = f[m + s], f2 = f[2 * m + s];
+        const double rf = (r0 * f0 + r1 * f1 + r2 * f2) * (ri * ri * ri);
+        a0 += f0 * ri + r0 * rf;
+        a1 += f1 * ri + r1 * rf;
+        a2 += f2 * ri + r2 * rf;
+    }
+    const double c = 1.0 / (8.0 * M_PI);
+    o[0] += a0 * c;
+    o[1] += a1 * c;
+    o[2] += a2 * c;
+}
+
+VF_CLONES static void vf_stresslet_planar_clones(const double *src, const double *nw, const double *g, ptrdiff_t m,
+                                                 const double *x, double *o)
+{
+    const double x0 = x[0], x1 = x[1], x2 = x[2];
+    double a0 = 0.0, a1 = 0.0, a2 = 0.0;
+#pragma omp simd reduction(+ : a0, a1, a2)
+    for (ptrdiff_t s = 0; s < m; ++s) {
+        const double r0 = x0 - src[s], r1 = x1 - src[m + s], r2 = x2 - src[2 * m + s];
+        const double rr = r0 * r0 + r1 * r1 + r2 * r2;
+        const double ri = rr > 0.0 ? 1.0 / sqrt(rr) : 0.0;
+        const double ri2 = ri * ri;
+        const double c = (r0 * nw[s] + r1 * nw[m + s] + r2 * nw[2 * m + s])
+                       * (r0 * g[s] + r1 * g[m + s] + r2 * g[2 * m + s]) * (ri2 * ri2 * ri);
+        a0 += c * r0;
+        a1 += c * r1;
+        a2 += c * r2;
+    }
+    const double c = -3.0 / (4.0 * M_PI);
+    o[0] += a0 * c;
+    o[1] += a1 * c;
+    o[2] += a2 * c;
+}
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
 #include <immintrin.h>
 #define VF_PAIRSUM_AVX512 __attribute__((target("avx512f,avx512dq,fma")))
@@ -125,12 +172,12 @@ VF_PAIRSUM_AVX512 static inline void vf_load3x8(const double *p, ptrdiff_t s, in
 /* 1/sqrt(rr) for rr > 0, 0 for rr = 0 or a lane outside `valid` */
 VF_PAIRSUM_AVX512 static inline __m512d vf_rsqrt_or_0(__m512d rr, __mmask8 valid)
 {
+    /* the estimate is 0 outside `pos`, and the Newton steps keep it 0 there (h y = 0) */
     const __mmask8 pos = _mm512_mask_cmp_pd_mask(valid, rr, _mm512_setzero_pd(), _CMP_GT_OQ);
-    const __m512d a = _mm512_mask_blend_pd(pos, _mm512_set1_pd(1.0), rr);
-    __m512d y = _mm512_rsqrt14_pd(a);
-    const __m512d h = _mm512_mul_pd(a, _mm512_set1_pd(0.5)), c = _mm512_set1_pd(1.5);
+    __m512d y = _mm512_maskz_rsqrt14_pd(pos, rr);
+    const __m512d h = _mm512_mul_pd(rr, _mm512_set1_pd(0.5)), c = _mm512_set1_pd(1.5);
     y = _mm512_mul_pd(y, _mm512_fnmadd_pd(_mm512_mul_pd(h, y), y, c));
-    return _mm512_maskz_mul_pd(pos, y, _mm512_fnmadd_pd(_mm512_mul_pd(h, y), y, c));
+    return _mm512_mul_pd(y, _mm512_fnmadd_pd(_mm512_mul_pd(h, y), y, c));
 }
 
 VF_PAIRSUM_AVX512 static void vf_stokeslet_range_avx512(const double *src, const double *f, ptrdiff_t s0, ptrdiff_t s1,
@@ -257,6 +304,176 @@ VF_PAIRSUM_AVX512 static void vf_stresslet_multi_avx512(const double *src, const
         for (int d = 0; d < 3; ++d)
             o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * c;
 }
+
+/* K (<= VF_PMT, a constant where inlined) targets against the m planar sources of one vesicle:
+ * the arithmetic of vf_stokeslet_multi_avx512 with three plain (masked at the end) loads per
+ * array instead of loads and permutes, the same lanes: the same values, bit for bit */
+#define VF_INLINE __attribute__((always_inline)) inline
+/* targets per pass: a near block of 9 is 3 passes of 3 (4 + 4 + 1 measured 5-10% slower; 5 + 4 the same) */
+#define VF_PMT 3
+VF_PAIRSUM_AVX512 static VF_INLINE void vf_stokeslet_planar_k(const double *src, const double *f, ptrdiff_t m,
+                                                              const double *x, const int K, double *o)
+{
+    __m512d X[VF_PMT][3], a[VF_PMT][3];
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            X[k][d] = _mm512_set1_pd(x[3 * k + d]);
+            a[k][d] = _mm512_setzero_pd();
+        }
+    for (ptrdiff_t s = 0; s < m; s += 8) {
+        const __mmask8 valid = (__mmask8)(m - s >= 8 ? 0xFF : (1u << (m - s)) - 1u);
+        const __m512d y0 = _mm512_maskz_loadu_pd(valid, src + s), y1 = _mm512_maskz_loadu_pd(valid, src + m + s),
+                      y2 = _mm512_maskz_loadu_pd(valid, src + 2 * m + s);
+        const __m512d f0 = _mm512_maskz_loadu_pd(valid, f + s), f1 = _mm512_maskz_loadu_pd(valid, f + m + s),
+                      f2 = _mm512_maskz_loadu_pd(valid, f + 2 * m + s);
+        for (int k = 0; k < K; ++k) {
+            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                          r2 = _mm512_sub_pd(X[k][2], y2);
+            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+            const __m512d ri = vf_rsqrt_or_0(rr, valid);
+            const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
+                                             _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
+            a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
+            a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
+            a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
+        }
+    }
+    const double c = 1.0 / (8.0 * M_PI);
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d)
+            o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * c;
+}
+
+VF_PAIRSUM_AVX512 static VF_INLINE void vf_stresslet_planar_k(const double *src, const double *nw, const double *g,
+                                                              ptrdiff_t m, const double *x, const int K, double *o)
+{
+    __m512d X[VF_PMT][3], a[VF_PMT][3];
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            X[k][d] = _mm512_set1_pd(x[3 * k + d]);
+            a[k][d] = _mm512_setzero_pd();
+        }
+    for (ptrdiff_t s = 0; s < m; s += 8) {
+        const __mmask8 valid = (__mmask8)(m - s >= 8 ? 0xFF : (1u << (m - s)) - 1u);
+        const __m512d y0 = _mm512_maskz_loadu_pd(valid, src + s), y1 = _mm512_maskz_loadu_pd(valid, src + m + s),
+                      y2 = _mm512_maskz_loadu_pd(valid, src + 2 * m + s);
+        const __m512d n0 = _mm512_maskz_loadu_pd(valid, nw + s), n1 = _mm512_maskz_loadu_pd(valid, nw + m + s),
+                      n2 = _mm512_maskz_loadu_pd(valid, nw + 2 * m + s);
+        const __m512d g0 = _mm512_maskz_loadu_pd(valid, g + s), g1 = _mm512_maskz_loadu_pd(valid, g + m + s),
+                      g2 = _mm512_maskz_loadu_pd(valid, g + 2 * m + s);
+        for (int k = 0; k < K; ++k) {
+            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                          r2 = _mm512_sub_pd(X[k][2], y2);
+            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+            const __m512d ri = vf_rsqrt_or_0(rr, valid);
+            const __m512d ri2 = _mm512_mul_pd(ri, ri);
+            const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
+            const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
+            const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
+            a[k][0] = _mm512_fmadd_pd(c, r0, a[k][0]);
+            a[k][1] = _mm512_fmadd_pd(c, r1, a[k][1]);
+            a[k][2] = _mm512_fmadd_pd(c, r2, a[k][2]);
+        }
+    }
+    const double c = -3.0 / (4.0 * M_PI);
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d)
+            o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * c;
+}
+
+/* any K: VF_PMT at a time, the rest by a version compiled for that count */
+VF_PAIRSUM_AVX512 static void vf_stokeslet_planar_avx512(const double *src, const double *f, ptrdiff_t m,
+                                                         const double *x, ptrdiff_t K, double *o)
+{
+    ptrdiff_t k = 0;
+    for (; K - k >= VF_PMT; k += VF_PMT)
+        vf_stokeslet_planar_k(src, f, m, x + 3 * k, VF_PMT, o + 3 * k);
+    switch (K - k) {
+    case 2: vf_stokeslet_planar_k(src, f, m, x + 3 * k, 2, o + 3 * k); break;
+    case 1: vf_stokeslet_planar_k(src, f, m, x + 3 * k, 1, o + 3 * k); break;
+    default: break;
+    }
+}
+
+VF_PAIRSUM_AVX512 static void vf_stresslet_planar_avx512(const double *src, const double *nw, const double *g,
+                                                         ptrdiff_t m, const double *x, ptrdiff_t K, double *o)
+{
+    ptrdiff_t k = 0;
+    for (; K - k >= VF_PMT; k += VF_PMT)
+        vf_stresslet_planar_k(src, nw, g, m, x + 3 * k, VF_PMT, o + 3 * k);
+    switch (K - k) {
+    case 2: vf_stresslet_planar_k(src, nw, g, m, x + 3 * k, 2, o + 3 * k); break;
+    case 1: vf_stresslet_planar_k(src, nw, g, m, x + 3 * k, 1, o + 3 * k); break;
+    default: break;
+    }
+}
+
+/* Both layers at once (viscosity contrast: the near blocks need S[f] + D[g]): r, r^2 and 1/r
+ * are shared, ~40 instead of ~57 vector operations per 8 sources and target; each lane does the
+ * operations of vf_stokeslet_planar_k and vf_stresslet_planar_k, and o gets the Stokeslet sum
+ * added first, then the stresslet's: bit for bit the two separate calls.  3 targets per pass
+ * (measured as fast as 2, whose 12 accumulators and 12 source vectors fit the registers). */
+#define VF_BMT 3
+VF_PAIRSUM_AVX512 static VF_INLINE void vf_both_planar_k(const double *src, const double *f, const double *nw,
+                                                         const double *g, ptrdiff_t m, const double *x, const int K,
+                                                         double *o)
+{
+    __m512d X[VF_BMT][3], a[VF_BMT][3], b[VF_BMT][3];
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            X[k][d] = _mm512_set1_pd(x[3 * k + d]);
+            a[k][d] = _mm512_setzero_pd();
+            b[k][d] = _mm512_setzero_pd();
+        }
+    for (ptrdiff_t s = 0; s < m; s += 8) {
+        const __mmask8 valid = (__mmask8)(m - s >= 8 ? 0xFF : (1u << (m - s)) - 1u);
+        const __m512d y0 = _mm512_maskz_loadu_pd(valid, src + s), y1 = _mm512_maskz_loadu_pd(valid, src + m + s),
+                      y2 = _mm512_maskz_loadu_pd(valid, src + 2 * m + s);
+        const __m512d f0 = _mm512_maskz_loadu_pd(valid, f + s), f1 = _mm512_maskz_loadu_pd(valid, f + m + s),
+                      f2 = _mm512_maskz_loadu_pd(valid, f + 2 * m + s);
+        const __m512d n0 = _mm512_maskz_loadu_pd(valid, nw + s), n1 = _mm512_maskz_loadu_pd(valid, nw + m + s),
+                      n2 = _mm512_maskz_loadu_pd(valid, nw + 2 * m + s);
+        const __m512d g0 = _mm512_maskz_loadu_pd(valid, g + s), g1 = _mm512_maskz_loadu_pd(valid, g + m + s),
+                      g2 = _mm512_maskz_loadu_pd(valid, g + 2 * m + s);
+        for (int k = 0; k < K; ++k) {
+            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                          r2 = _mm512_sub_pd(X[k][2], y2);
+            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+            const __m512d ri = vf_rsqrt_or_0(rr, valid);
+            const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
+                                             _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
+            a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
+            a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
+            a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
+            const __m512d ri2 = _mm512_mul_pd(ri, ri);
+            const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
+            const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
+            const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
+            b[k][0] = _mm512_fmadd_pd(c, r0, b[k][0]);
+            b[k][1] = _mm512_fmadd_pd(c, r1, b[k][1]);
+            b[k][2] = _mm512_fmadd_pd(c, r2, b[k][2]);
+        }
+    }
+    const double cs = 1.0 / (8.0 * M_PI), cd = -3.0 / (4.0 * M_PI);
+    for (int k = 0; k < K; ++k)
+        for (int d = 0; d < 3; ++d) {
+            o[3 * k + d] += _mm512_reduce_add_pd(a[k][d]) * cs;
+            o[3 * k + d] += _mm512_reduce_add_pd(b[k][d]) * cd;
+        }
+}
+
+VF_PAIRSUM_AVX512 static void vf_both_planar_avx512(const double *src, const double *f, const double *nw,
+                                                    const double *g, ptrdiff_t m, const double *x, ptrdiff_t K,
+                                                    double *o)
+{
+    ptrdiff_t k = 0;
+    for (; K - k >= VF_BMT; k += VF_BMT)
+        vf_both_planar_k(src, f, nw, g, m, x + 3 * k, VF_BMT, o + 3 * k);
+    if (K - k == 2)
+        vf_both_planar_k(src, f, nw, g, m, x + 3 * k, 2, o + 3 * k);
+    else if (K - k == 1)
+        vf_both_planar_k(src, f, nw, g, m, x + 3 * k, 1, o + 3 * k);
+}
 #else
 static int vf_pairsum_use_avx512(void) { return 0; }
 static int vf_pairsum_path(int avx512) { (void)avx512; return 0; }
@@ -315,5 +532,48 @@ static void vf_stresslet_targets(const double *src, const double *nw, const doub
 #endif
     for (ptrdiff_t k = 0; k < K; ++k)
         vf_stresslet_range_clones(src, nw, g, s0, s1, x + 3 * k, o + 3 * k);
+}
+
+/* K targets x[3k..3k+2] against the m planar sources of one vesicle (src, f: x/y/z rows of m) */
+static void vf_stokeslet_planar_targets(const double *src, const double *f, ptrdiff_t m, const double *x, ptrdiff_t K,
+                                        double *o)
+{
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+    if (vf_pairsum_use_avx512()) {
+        vf_stokeslet_planar_avx512(src, f, m, x, K, o);
+        return;
+    }
+#endif
+    for (ptrdiff_t k = 0; k < K; ++k)
+        vf_stokeslet_planar_clones(src, f, m, x + 3 * k, o + 3 * k);
+}
+
+static void vf_stresslet_planar_targets(const double *src, const double *nw, const double *g, ptrdiff_t m,
+                                        const double *x, ptrdiff_t K, double *o)
+{
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+    if (vf_pairsum_use_avx512()) {
+        vf_stresslet_planar_avx512(src, nw, g, m, x, K, o);
+        return;
+    }
+#endif
+    for (ptrdiff_t k = 0; k < K; ++k)
+        vf_stresslet_planar_clones(src, nw, g, m, x + 3 * k, o + 3 * k);
+}
+
+/* both layers: o[3k..] += S[f] then += D[g] at each of the K targets (the two calls above, fused) */
+static void vf_both_planar_targets(const double *src, const double *f, const double *nw, const double *g, ptrdiff_t m,
+                                   const double *x, ptrdiff_t K, double *o)
+{
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+    if (vf_pairsum_use_avx512()) {
+        vf_both_planar_avx512(src, f, nw, g, m, x, K, o);
+        return;
+    }
+#endif
+    for (ptrdiff_t k = 0; k < K; ++k) {
+        vf_stokeslet_planar_clones(src, f, m, x + 3 * k, o + 3 * k);
+        vf_stresslet_planar_clones(src, nw, g, m, x + 3 * k, o + 3 * k);
+    }
 }
 #endif

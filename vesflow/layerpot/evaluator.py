@@ -113,6 +113,9 @@ class LayerPotentials:
             far_args = self._halo_setup(gq)
         self.src_id = np.repeat(self.known, mq)
         self.src_off = np.arange(len(self.known) + 1, dtype=np.int64) * mq
+        # the near blocks read the sources planar, x/y/z runs per vesicle (stokes.planar)
+        self.src_planar = stokes.planar(self.src, self.src_off)
+        self.src_nw_planar = stokes.planar(self.src_nw, self.src_off)
         if self.N_total > 1 or s.period:    # periodic: a single vesicle sees its images
             with _timed(timers, "near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
@@ -353,10 +356,13 @@ class LayerPotentials:
         pairs = info["pairs"]
         # smooth rule of each pair's vesicle at its target (column 0) and line points (1 ..)
         blk = np.zeros(info["blocks"].shape)
-        stokes.stokeslet_sum_blocks(self.src, fw, self.src_off, info["blocks"], info["block_ves"], blk)
-        if gq is not None:
-            stokes.stresslet_sum_blocks(self.src, self.src_nw, gq, self.src_off, info["blocks"], info["block_ves"],
-                                        blk)
+        fp = stokes.planar(fw, self.src_off)
+        if gq is None:
+            stokes.stokeslet_sum_blocks(self.src_planar, fp, self.src_off, info["blocks"], info["block_ves"], blk)
+        else:                          # both layers in one pass over the sources (the same values)
+            stokes.stokeslet_stresslet_sum_blocks(self.src_planar, fp, self.src_nw_planar,
+                                                  stokes.planar(gq, self.src_off), self.src_off, info["blocks"],
+                                                  info["block_ves"], blk)
         smooth = blk[:, 0]
         line = blk[:, 1:]
         v, rows = pairs[:, 1], info["rows"]

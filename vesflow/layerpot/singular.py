@@ -25,8 +25,12 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import eval_legendre
 
-from .. import sph
+from .. import sph, threads
 from .._kernels import stokes
+
+# self operators smaller than this (bytes) are applied in one thread: waking a second one costs
+# more than it saves (MIN_P_THREADS in vesflow.threads for the set-up; measured below)
+MIN_BYTES_THREADED = 32e6
 
 INV8PI = 1.0 / (8.0 * np.pi)
 DL_COEF = -3.0 / (4.0 * np.pi)
@@ -82,15 +86,13 @@ class SelfOperators:
             raise ValueError(f"SelfOperators dtype = {dtype}: must be float64 or float32")
         self.single = np.empty((nves, 3 * C, 3 * C), dtype) if want_single else None
         self.double = np.empty((nves, 3 * C, 3 * C), dtype) if want_double else None
-        from ..threads import map_vesicles
-
         def store(v):               # one vesicle's float64 operators at a time (peak memory)
             S, D = self._assemble(coeffs[v], want_single, want_double)
             if want_single:
                 self.single[v] = S / viscosity
             if want_double:
                 self.double[v] = D
-        map_vesicles(store, range(nves), p)
+        threads.map_vesicles(store, range(nves), p)
 
     @property
     def nbytes(self):
@@ -134,11 +136,22 @@ class SelfOperators:
     # ------------------------------------------------------------------ apply
     @staticmethod
     def apply(ops, density_coeffs):
-        """Batched GEMM: ops (N, 3C, 3C), density (N, 3, C) -> (N, 3, C) float64 (float32
-        operators: the GEMM in float32)."""
+        """Batched GEMV: ops (N, 3C, 3C), density (N, 3, C) -> (N, 3, C) float64 (float32
+        operators: the product in float32).  Memory-bound (it reads every operator once: 3 GB at
+        N = 512, p = 16), so the vesicles are split into one contiguous range per thread
+        (vesflow.threads.map_vesicles: up to OMP_NUM_THREADS, only idle cores), each range one
+        np.matmul, which releases the GIL (BLAS on one thread meanwhile); operators below
+        MIN_BYTES_THREADED in one call."""
         N, _, C = density_coeffs.shape
+        x = density_coeffs.reshape(N, 3 * C, 1)
         if ops.dtype == np.float32:
-            out = np.matmul(ops, density_coeffs.reshape(N, 3 * C, 1).astype(np.float32))
-            return out.reshape(N, 3, C).astype(np.float64)
-        out = np.matmul(ops, density_coeffs.reshape(N, 3 * C, 1))
-        return out.reshape(N, 3, C)
+            x = x.astype(np.float32)
+        out = np.empty((N, 3 * C, 1), dtype=ops.dtype)
+        n = threads.vesicle_threads(N) if ops.nbytes >= MIN_BYTES_THREADED else 1
+        if n <= 1:
+            np.matmul(ops, x, out=out)
+        else:
+            cut = np.linspace(0, N, n + 1).round().astype(int)
+            ranges = [slice(a, b) for a, b in zip(cut[:-1], cut[1:])]
+            threads.map_vesicles(lambda r: np.matmul(ops[r], x[r], out=out[r]), ranges)
+        return out.reshape(N, 3, C).astype(np.float64, copy=False)
