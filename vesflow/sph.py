@@ -276,6 +276,22 @@ class Transform:
         out = padded.reshape(2 * M * M, B)[self._pad_flat[:k]]              # (k, B)
         return np.ascontiguousarray(out.T).reshape(lead + (k,))
 
+    def analysis_rows(self, values, full=False, scale=1.0):
+        """P along the first axis: values (npts, B) on the grid -> coefficients (C or (p+1)^2, B),
+        times ``scale`` (folded into the latitude weights).  The same two steps as analysis,
+        in the layout that reads the rows in place: per latitude a (2M, nlon) @ (nlon, B) GEMM,
+        then per (s, m) the Legendre step (N, I) @ (I, B) on strided slices: 100 MFLOP for
+        B = 6C at p = q = 16, against 550 for the dense (C, npts) analysis matrix."""
+        values = np.asarray(values, dtype=float)
+        B = values.shape[1]
+        M = self.p + 1
+        F = np.matmul(self._trig_analysis, values.reshape(self.nlat, self.nlon, B))   # (I, 2M, B)
+        F *= (self.glw * scale)[:, None, None]
+        F = F.reshape(self.nlat, 2, M, B).transpose(1, 2, 0, 3)                     # (2, M, I, B)
+        padded = np.matmul(self._lam_T, F)                                           # (2, M, N, B)
+        k = self.nfull if full else self.ncoef
+        return padded.reshape(2 * M * M, B)[self._pad_flat[:k]]
+
     def synth_transpose(self, values, full=False):
         """Q^T: the transpose of synth as a linear map, (..., npts) -> (..., C) or (..., (p+1)^2)."""
         values = np.asarray(values, dtype=float)
@@ -374,31 +390,34 @@ def wigner_blocks(p, beta):
 def rotate_z(coeffs, p, alpha):
     """Coefficients of g(theta, phi) = f(theta, phi + alpha), full layout (..., (p+1)^2).
 
-    alpha may be an array broadcast against the leading axes of coeffs.
+    alpha may be an array broadcast against the leading axes of coeffs.  Per coefficient k
+    of order m: out_k = c_k cos(m alpha) + c_k' s_k sin(m alpha), with k' the sine (cosine)
+    partner of a cosine (sine) coefficient and s_k = +1 (-1); one gather of the partners and
+    whole-row products (no per-order slices: slow for many short rows).
     """
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    cos_idx, sin_idx, m_cos, m0 = _z_rotation_index(p)
+    partner, m, sign = _z_rotation_index(p)
     alpha = np.asarray(alpha, dtype=float)[..., None]
-    out = np.empty_like(coeffs)
-    a, b = coeffs[..., cos_idx], coeffs[..., sin_idx]
-    ang = m_cos * alpha
-    ca, sa = np.cos(ang), np.sin(ang)
-    out[..., cos_idx] = a * ca + b * sa
-    out[..., sin_idx] = b * ca - a * sa
-    out[..., m0] = coeffs[..., m0]
+    ang = m * alpha
+    out = coeffs * np.cos(ang)
+    out += np.take(coeffs, partner, axis=-1) * (sign * np.sin(ang))
     return out
 
 
 @lru_cache(maxsize=None)
 def _z_rotation_index(p):
-    """rotate_z's index sets of the full layout: cosine coefficients with m > 0, their sine
-    partners (which follow the cosine block), their orders m, and the m = 0 coefficients."""
+    """rotate_z's tables over the full layout: the partner of each coefficient (the sine
+    coefficient of the same (n, m) for a cosine one and vice versa; itself for m = 0), its
+    order m (float) and the sign of the sine term (+1 cosine, -1 sine, 0 for m = 0)."""
     ns, ms, ks = index_tables(p)
+    partner = np.arange(len(ns))
     cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
     sin_idx = cos_idx + (p + 1 - ms[cos_idx])
-    return cos_idx, sin_idx, ms[cos_idx].astype(float), np.nonzero(ms == 0)[0]
+    partner[cos_idx], partner[sin_idx] = sin_idx, cos_idx
+    sign = np.where(ms == 0, 0.0, np.where(ks == 0, 1.0, -1.0))
+    return partner, ms.astype(float), sign
 
 
 @lru_cache(maxsize=None)
@@ -417,14 +436,12 @@ def apply_degree_blocks(coeffs, p, blocks, transpose=False):
     ((idx, B_n) per degree) from the right: out[..., idx_n] = coeffs[..., idx_n] @ B_n^T (or
     @ B_n with transpose).  One gather into degree order, contiguous slices, one scatter."""
     perm, offs = degree_order(p)
-    x = coeffs[..., perm]
+    x = np.take(coeffs, perm, axis=-1)
     y = np.empty_like(x)
     for n, (_, block) in enumerate(blocks):
         a, b = offs[n], offs[n + 1]
         np.matmul(x[..., a:b], block if transpose else block.T, out=y[..., a:b])
-    out = np.empty_like(x)
-    out[..., perm] = y
-    return out
+    return np.take(y, np.argsort(perm), axis=-1)
 
 
 def rotate_y(coeffs, p, beta):

@@ -26,7 +26,7 @@ import numpy as np
 
 from .. import sph
 from .._kernels import ewald as _ewald
-from .singular import FULL, SelfOperators, analysis_matrix
+from .singular import SelfOperators, project_rows
 
 NONE = np.empty((0, 0, 0))
 
@@ -66,7 +66,6 @@ class OwnSmoothOperators:
         p, q = self.p, self.q
         Tp, Tq = sph.transform(p), sph.transform(p, q)
         C = sph.n_coeffs(p)
-        Pm = analysis_matrix(p)                                       # (C, Mp)
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(Tp.nlat, Tp.nlon, 3)
         y = np.ascontiguousarray(y, dtype=np.float64)
         w = np.ascontiguousarray(w, dtype=np.float64)
@@ -79,14 +78,8 @@ class OwnSmoothOperators:
                                         ker["S"] if want_single else NONE, ker["D"] if want_double else NONE)
             for k in kinds:
                 rows[k][i] = Tq.synth_transpose(ker[k])                  # (J, 6, C)
-        out = []
-        for k in ("S", "D"):
-            if k not in rows:
-                out.append(None)
-                continue
-            proj = (Pm @ rows[k].reshape(Tp.npts, 6 * C)).reshape(C, 6, C)   # (k', ab, k)
-            full = proj[:, FULL]                                            # (k', 3, 3, k)
-            out.append(-np.ascontiguousarray(full.transpose(1, 0, 2, 3)).reshape(3 * C, 3 * C))
+        out = [None if k not in rows else project_rows(rows.pop(k).reshape(Tp.npts, 6, C), p, scale=-1.0)
+               for k in ("S", "D")]
         return out[0], out[1]
 
     def apply(self, f, g=None):
