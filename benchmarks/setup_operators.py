@@ -23,7 +23,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from vesflow import shapes, sph  # noqa: E402
+from vesflow import shapes, sph, threads  # noqa: E402
 from vesflow.layerpot.own_smooth import OwnSmoothOperators  # noqa: E402
 from vesflow.layerpot.singular import SelfOperators  # noqa: E402
 from vesflow.surface import Surface  # noqa: E402
@@ -84,7 +84,8 @@ def main(argv=None):
             pstats.Stats(pr).sort_stats("tottime").print_stats(12)
         return
     print(f"# per-vesicle operators, p = {p}, q = {q}, N = {args.n}, C = {sph.n_coeffs(p)}; "
-          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; load average "
+          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}, map_vesicles threads now "
+          f"{min(threads.openmp_threads(), args.n, threads.free_cores())}; load average "
           + " ".join(f"{v:.2f}" for v in os.getloadavg()))
     print(f"{'operator':>10} {'CPU ms/ves':>11} {'wall ms/ves':>12}")
     for name, b in builders.items():

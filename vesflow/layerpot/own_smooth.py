@@ -18,7 +18,8 @@ the far field (LayerPotentials.apply, after the same p-grid analysis P_p) remove
 rounding: the Fourier part evaluates the same q-grid quadrature of the same kernel, to the
 Ewald tolerance.  Assembly per vesicle, one target latitude at a time: the kernel table (6
 symmetric components x Mq sources, ``ewald.smooth_kernel_tables``), Q_q^T by the transposed
-transform, then the p-grid analysis matrix (SelfOperators._assemble without rotations).
+transform, then the fast p-grid analysis along the target axis (singular.project_rows; as
+SelfOperators._assemble without rotations).
 """
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ class OwnSmoothOperators:
         def store(v):
             S, D = self._assemble(trg[v], src[v], w[v], nw[v], want_single, want_double)
             if want_single:
-                self.single[v] = S / viscosity
+                np.divide(S, viscosity, out=self.single[v])   # in place: no (3C)^2 temporary
             if want_double:
                 self.double[v] = D
         map_vesicles(store, range(N), p)

@@ -89,7 +89,7 @@ class SelfOperators:
         def store(v):               # one vesicle's float64 operators at a time (peak memory)
             S, D = self._assemble(coeffs[v], want_single, want_double)
             if want_single:
-                self.single[v] = S / viscosity
+                np.divide(S, viscosity, out=self.single[v])   # in place: no (3C)^2 temporary
             if want_double:
                 self.double[v] = D
         map_vesicles(store, range(nves), p)
