@@ -387,23 +387,31 @@ def wigner_blocks(p, beta):
     return tuple(blocks)
 
 
-def rotate_z(coeffs, p, alpha):
+def rotate_z(coeffs, p, alpha, tables=None):
     """Coefficients of g(theta, phi) = f(theta, phi + alpha), full layout (..., (p+1)^2).
 
     alpha may be an array broadcast against the leading axes of coeffs.  Per coefficient k
     of order m: out_k = c_k cos(m alpha) + c_k' s_k sin(m alpha), with k' the sine (cosine)
     partner of a cosine (sine) coefficient and s_k = +1 (-1); one gather of the partners and
-    whole-row products (no per-order slices: slow for many short rows).
+    whole-row products (no per-order slices: slow for many short rows).  ``tables`` =
+    z_rotation_tables(p, alpha), when the same angles rotate many arrays (the trigonometric
+    functions then cost more than the rotation); alpha is ignored then.
     """
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    partner, m, sign = _z_rotation_index(p)
-    alpha = np.asarray(alpha, dtype=float)[..., None]
-    ang = m * alpha
-    out = coeffs * np.cos(ang)
-    out += np.take(coeffs, partner, axis=-1) * (sign * np.sin(ang))
+    cos_t, sin_t = z_rotation_tables(p, alpha) if tables is None else tables
+    out = coeffs * cos_t
+    out += np.take(coeffs, _z_rotation_index(p)[0], axis=-1) * sin_t
     return out
+
+
+def z_rotation_tables(p, alpha):
+    """(cos(m alpha), s sin(m alpha)) per coefficient of the full layout, shape alpha.shape +
+    ((p+1)^2,): rotate_z's factors (sign s as there)."""
+    partner, m, sign = _z_rotation_index(p)
+    ang = m * np.asarray(alpha, dtype=float)[..., None]
+    return np.cos(ang), sign * np.sin(ang)
 
 
 @lru_cache(maxsize=None)

@@ -116,6 +116,7 @@ class SelfOperators:
         phis = Tp.phi
         ker = {w: np.empty((len(phis), 6, Tq.npts)) for w in kinds}      # kernel x weights (stokes.self_kernel_tables)
         Xz = sph.rotate_z(np.broadcast_to(X, (len(phis), 3, C)), p, phis[:, None])   # f o R_z(phi0), (J, 3, K)
+        z_back = sph.z_rotation_tables(p, -phis[:, None])                    # D_z(phi0)^T = D_z(-phi0)
         for i0, theta0 in enumerate(Tp.theta):
             # rotated surface, one per target on this latitude: (J, 3, Mq) with derivatives
             blocks = sph.wigner_blocks(p, float(theta0))
@@ -125,7 +126,7 @@ class SelfOperators:
             for which in kinds:
                 R = Tq.synth_transpose(ker[which], full=True)                       # (J, 6, K)
                 back = sph.apply_degree_blocks(R, p, blocks, transpose=True)        # D_y(theta0)^T
-                rows[which][i0] = sph.rotate_z(back, p, -phis[:, None])              # D_z(phi0)^T = D_z(-phi0)
+                rows[which][i0] = sph.rotate_z(back, p, None, tables=z_back)
         out = []
         for which in ("S", "D"):
             if which not in rows:
