@@ -446,14 +446,17 @@ def degree_order(p):
 def apply_degree_blocks(coeffs, p, blocks, transpose=False):
     """coeffs (..., (p+1)^2) times the block-diagonal matrix of wigner_blocks-like ``blocks``
     ((idx, B_n) per degree) from the right: out[..., idx_n] = coeffs[..., idx_n] @ B_n^T (or
-    @ B_n with transpose).  One gather into degree order, contiguous slices, one scatter."""
+    @ B_n with transpose).  One gather into degree order, one GEMM per degree over all rows
+    (the leading axes flattened: not one small GEMM per leading index), one scatter."""
     perm, offs = degree_order(p)
     x = np.take(coeffs, perm, axis=-1)
+    shape = x.shape
+    x = x.reshape(-1, shape[-1])
     y = np.empty_like(x)
     for n, (_, block) in enumerate(blocks):
         a, b = offs[n], offs[n + 1]
-        np.matmul(x[..., a:b], block if transpose else block.T, out=y[..., a:b])
-    return np.take(y, np.argsort(perm), axis=-1)
+        np.matmul(x[:, a:b], block if transpose else block.T, out=y[:, a:b])
+    return np.take(y, np.argsort(perm), axis=-1).reshape(shape)
 
 
 def rotate_y(coeffs, p, beta):
