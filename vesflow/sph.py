@@ -290,9 +290,11 @@ class Transform:
         B = values.shape[1]
         M = self.p + 1
         F = np.matmul(self._trig_analysis, values.reshape(self.nlat, self.nlon, B))   # (I, 2M, B)
-        F *= (self.glw * scale)[:, None, None]
         F = F.reshape(self.nlat, 2, M, B).transpose(1, 2, 0, 3)                     # (2, M, I, B)
-        padded = np.matmul(self._lam_T, F)                                           # (2, M, N, B)
+        lam_w = self._lam_T * (self.glw * scale)                                     # weights on the small table
+        padded = np.empty((2, M, M, B))                                              # (2, M, N, B); n < m unused
+        for m in range(M):
+            np.matmul(lam_w[m, m:], F[:, m], out=padded[:, m, m:])
         k = self.nfull if full else self.ncoef
         return padded.reshape(2 * M * M, B)[self._pad_flat[:k]]
 
