@@ -25,6 +25,7 @@ SCRIPTS = [
     ("sht_ducc0.py", ["--p", "8", "16", "--batch", "1", "100", "--repeat", "2"]),
     ("self_operator.py", ["--degrees", "8", "16", "--setup-ves", "1", "--stream-mb", "0", "--rounds", "3"]),
     ("far_field.py", ["--sizes", "4", "8", "16", "--repeat", "1", "--max-seconds", "60", "--budget", "120"]),
+    ("setup_operators.py", ["--n", "4", "--p", "8", "--repeat", "1"]),
     ("iteration.py", ["--n", "8", "--p", "8", "--repeat", "1"]),
     ("gmres_iterations.py", ["--sizes", "2", "8", "--degrees", "8"]),
     ("step_cost.py", ["--p", "6", "--steps", "10"]),

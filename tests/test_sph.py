@@ -100,3 +100,31 @@ def test_resample_and_filter(rng):
     ns = sph.index_tables(6)[0][: len(c)]
     f = sph.filter_coeffs(c, 6, np.exp(-np.arange(7.0)))
     assert np.allclose(f, c * np.exp(-ns))
+
+
+@pytest.mark.parametrize("p, q", [(6, 6), (8, 11)])
+def test_analysis_rows_is_the_analysis_along_the_first_axis(p, q, rng):
+    """Transform.analysis_rows (the operators' projection, docs/far_field.md "Set-up of the self
+    and own smooth operators") equals analysis of the transposed values, reduced and full."""
+    T = sph.transform(p, q)
+    v = rng.standard_normal((T.npts, 7))
+    for full in (False, True):
+        ref = T.analysis(v.T, full=full).T
+        assert np.abs(T.analysis_rows(v, full=full) - ref).max() < 1e-14 * np.abs(ref).max()
+    assert np.abs(T.analysis_rows(v, scale=-2.5) + 2.5 * T.analysis(v.T).T).max() < 1e-14 * np.abs(v).max()
+
+
+def test_rotate_z_with_an_angle_per_row_and_its_inverse(rng):
+    """rotate_z broadcasts alpha (J, 1) against coefficients (J, 3, C): row by row as with a
+    scalar angle, which shifts phi (checked at points), and alpha then -alpha is the identity."""
+    p = 7
+    c = rng.standard_normal((5, 3, sph.n_coeffs(p)))
+    alpha = rng.uniform(-4, 4, 5)
+    got = sph.rotate_z(c, p, alpha[:, None])
+    assert got.shape == (5, 3, sph.n_full(p))
+    theta, phi = rng.uniform(0.1, 3.0, 9), rng.uniform(0, 6.3, 9)
+    for j in range(5):
+        ref = sph.evaluate(c[j], p, theta, phi + alpha[j])
+        assert np.abs(sph.evaluate(got[j], p, theta, phi) - ref).max() < 1e-13 * np.abs(ref).max()
+    back = sph.rotate_z(got, p, -alpha[:, None])
+    assert np.abs(back[..., :-1] - c).max() < 1e-14 * np.abs(c).max() and np.abs(back[..., -1]).max() < 1e-14

@@ -68,6 +68,20 @@ def test_map_vesicles_keeps_order_and_uses_no_more_threads_than_free_cores(monke
     assert names == {threading.current_thread().name}
 
 
+def test_map_vesicles_runs_the_openmp_kernels_of_its_workers_on_one_thread():
+    """No nested teams (2 Python threads x 2 OpenMP threads on 2 cores): in a process started
+    with OMP_NUM_THREADS=2 (libgomp's default for new threads), the workers' kernels get one
+    thread and the main thread keeps its two."""
+    code = ("import os; from vesflow import threads; from vesflow._kernels import series\n"
+            "os.cpu_count = lambda: 2; threads.other_runnable = lambda: 0\n"
+            "seen = threads.map_vesicles(lambda i: series.get_max_threads(), range(6))\n"
+            "print('workers', sorted(set(seen)), 'main', series.get_max_threads())\n")
+    env = dict(os.environ, OMP_NUM_THREADS="2", PYTHONPATH=os.getcwd())
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "workers [1] main 2" in r.stdout, r.stdout
+
+
 def test_openmp_threads_follow_the_idle_cores(monkeypatch):
     from vesflow._kernels import series
     monkeypatch.setenv("OMP_NUM_THREADS", "2")

@@ -262,7 +262,8 @@ class Transform:
     def _analysis_like(self, values, trig, latw, full):
         """Fourier projection with trig = [acos; asin] (2M, nlon), latitude weights, then the
         transposed Legendre step.  Layout (s = cos/sin, m, b = batch, i = latitude) throughout,
-        so that both GEMMs read their operands in place and the result is gathered once."""
+        so that both GEMMs read their operands in place and the result is gathered once; the
+        Legendre step per order m over the degrees n >= m only (1/3 less time at p = 16)."""
         lead = values.shape[:-1]
         B = math.prod(lead)
         M = self.p + 1
@@ -271,10 +272,31 @@ class Transform:
         F = F.reshape(2, M, B, self.nlat)
         if latw is not None:
             F *= latw
-        padded = np.matmul(self._lam_T, F.transpose(0, 1, 3, 2))             # (2, M, N, B)
+        Ft = F.transpose(0, 1, 3, 2)
+        padded = np.empty((2, M, M, B))                                      # (2, M, N, B); n < m unused
+        for m in range(M):                                                   # lam_n^m = 0 for n < m
+            np.matmul(self._lam_T[m, m:], Ft[:, m], out=padded[:, m, m:])
         k = self.nfull if full else self.ncoef
         out = padded.reshape(2 * M * M, B)[self._pad_flat[:k]]              # (k, B)
         return np.ascontiguousarray(out.T).reshape(lead + (k,))
+
+    def analysis_rows(self, values, full=False, scale=1.0):
+        """P along the first axis: values (npts, B) on the grid -> coefficients (C or (p+1)^2, B),
+        times ``scale`` (folded into the latitude weights).  The same two steps as analysis,
+        in the layout that reads the rows in place: per latitude a (2M, nlon) @ (nlon, B) GEMM,
+        then per (s, m) the Legendre step (N, I) @ (I, B) on strided slices: 100 MFLOP for
+        B = 6C at p = q = 16, against 550 for the dense (C, npts) analysis matrix."""
+        values = np.asarray(values, dtype=float)
+        B = values.shape[1]
+        M = self.p + 1
+        F = np.matmul(self._trig_analysis, values.reshape(self.nlat, self.nlon, B))   # (I, 2M, B)
+        F = F.reshape(self.nlat, 2, M, B).transpose(1, 2, 0, 3)                     # (2, M, I, B)
+        lam_w = self._lam_T * (self.glw * scale)                                     # weights on the small table
+        padded = np.empty((2, M, M, B))                                              # (2, M, N, B); n < m unused
+        for m in range(M):
+            np.matmul(lam_w[m, m:], F[:, m], out=padded[:, m, m:])
+        k = self.nfull if full else self.ncoef
+        return padded.reshape(2 * M * M, B)[self._pad_flat[:k]]
 
     def synth_transpose(self, values, full=False):
         """Q^T: the transpose of synth as a linear map, (..., npts) -> (..., C) or (..., (p+1)^2)."""
@@ -371,34 +393,45 @@ def wigner_blocks(p, beta):
     return tuple(blocks)
 
 
-def rotate_z(coeffs, p, alpha):
+def rotate_z(coeffs, p, alpha, tables=None):
     """Coefficients of g(theta, phi) = f(theta, phi + alpha), full layout (..., (p+1)^2).
 
-    alpha may be an array broadcast against the leading axes of coeffs.
+    alpha may be an array broadcast against the leading axes of coeffs.  Per coefficient k
+    of order m: out_k = c_k cos(m alpha) + c_k' s_k sin(m alpha), with k' the sine (cosine)
+    partner of a cosine (sine) coefficient and s_k = +1 (-1); one gather of the partners and
+    whole-row products (no per-order slices: slow for many short rows).  ``tables`` =
+    z_rotation_tables(p, alpha), when the same angles rotate many arrays (the trigonometric
+    functions then cost more than the rotation); alpha is ignored then.
     """
     coeffs = np.asarray(coeffs, dtype=float)
     if coeffs.shape[-1] != n_full(p):
         coeffs = np.concatenate([coeffs, np.zeros(coeffs.shape[:-1] + (1,))], axis=-1)
-    cos_idx, sin_idx, m_cos, m0 = _z_rotation_index(p)
-    alpha = np.asarray(alpha, dtype=float)[..., None]
-    out = np.empty_like(coeffs)
-    a, b = coeffs[..., cos_idx], coeffs[..., sin_idx]
-    ang = m_cos * alpha
-    ca, sa = np.cos(ang), np.sin(ang)
-    out[..., cos_idx] = a * ca + b * sa
-    out[..., sin_idx] = b * ca - a * sa
-    out[..., m0] = coeffs[..., m0]
+    cos_t, sin_t = z_rotation_tables(p, alpha) if tables is None else tables
+    out = coeffs * cos_t
+    out += np.take(coeffs, _z_rotation_index(p)[0], axis=-1) * sin_t
     return out
+
+
+def z_rotation_tables(p, alpha):
+    """(cos(m alpha), s sin(m alpha)) per coefficient of the full layout, shape alpha.shape +
+    ((p+1)^2,): rotate_z's factors (sign s as there)."""
+    partner, m, sign = _z_rotation_index(p)
+    ang = m * np.asarray(alpha, dtype=float)[..., None]
+    return np.cos(ang), sign * np.sin(ang)
 
 
 @lru_cache(maxsize=None)
 def _z_rotation_index(p):
-    """rotate_z's index sets of the full layout: cosine coefficients with m > 0, their sine
-    partners (which follow the cosine block), their orders m, and the m = 0 coefficients."""
+    """rotate_z's tables over the full layout: the partner of each coefficient (the sine
+    coefficient of the same (n, m) for a cosine one and vice versa; itself for m = 0), its
+    order m (float) and the sign of the sine term (+1 cosine, -1 sine, 0 for m = 0)."""
     ns, ms, ks = index_tables(p)
+    partner = np.arange(len(ns))
     cos_idx = np.nonzero((ks == 0) & (ms > 0))[0]
     sin_idx = cos_idx + (p + 1 - ms[cos_idx])
-    return cos_idx, sin_idx, ms[cos_idx].astype(float), np.nonzero(ms == 0)[0]
+    partner[cos_idx], partner[sin_idx] = sin_idx, cos_idx
+    sign = np.where(ms == 0, 0.0, np.where(ks == 0, 1.0, -1.0))
+    return partner, ms.astype(float), sign
 
 
 @lru_cache(maxsize=None)
@@ -415,16 +448,17 @@ def degree_order(p):
 def apply_degree_blocks(coeffs, p, blocks, transpose=False):
     """coeffs (..., (p+1)^2) times the block-diagonal matrix of wigner_blocks-like ``blocks``
     ((idx, B_n) per degree) from the right: out[..., idx_n] = coeffs[..., idx_n] @ B_n^T (or
-    @ B_n with transpose).  One gather into degree order, contiguous slices, one scatter."""
+    @ B_n with transpose).  One gather into degree order, one GEMM per degree over all rows
+    (the leading axes flattened: not one small GEMM per leading index), one scatter."""
     perm, offs = degree_order(p)
-    x = coeffs[..., perm]
+    x = np.take(coeffs, perm, axis=-1)
+    shape = x.shape
+    x = x.reshape(-1, shape[-1])
     y = np.empty_like(x)
     for n, (_, block) in enumerate(blocks):
         a, b = offs[n], offs[n + 1]
-        np.matmul(x[..., a:b], block if transpose else block.T, out=y[..., a:b])
-    out = np.empty_like(x)
-    out[..., perm] = y
-    return out
+        np.matmul(x[:, a:b], block if transpose else block.T, out=y[:, a:b])
+    return np.take(y, np.argsort(perm), axis=-1).reshape(shape)
 
 
 def rotate_y(coeffs, p, beta):

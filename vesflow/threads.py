@@ -128,7 +128,9 @@ def map_vesicles(fn, items, p=None):
     4.5-4.9 s); in this thread when one is all there is, or when the degree p is below
     MIN_P_THREADS (idle machine, 2 threads vs 1: p = 6, 20 steps 0.74-0.78 s vs 0.69-0.70 s;
     p = 12: 2.75-3.12 s vs 3.79-3.89 s).  BLAS runs on one thread while the threads do
-    (blas_one_thread)."""
+    (blas_one_thread), and on the n worker threads the OpenMP kernels (e.g. the self operators'
+    kernel tables) run on openmp_threads() // n threads (one, with 2 and 2): the vesicles are
+    the parallelism."""
     items = list(items)
     n = vesicle_threads(len(items))
     if p is not None and p < MIN_P_THREADS:
@@ -141,5 +143,11 @@ def map_vesicles(fn, items, p=None):
         if pool is not None:
             pool.shutdown(wait=False)
         pool = _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix=_POOL_PREFIX)
+    from ._kernels import series
+    per_worker = max(1, openmp_threads() // n)
+
+    def with_shared_openmp(i):     # no nested teams (2 x 2 threads on 2 cores): the OpenMP
+        series.set_num_threads(per_worker)   # ICV is per calling thread: this worker's kernels
+        return fn(i)
     with blas_one_thread():
-        return list(pool.map(fn, items))
+        return list(pool.map(with_shared_openmp, items))

@@ -18,7 +18,8 @@ the far field (LayerPotentials.apply, after the same p-grid analysis P_p) remove
 rounding: the Fourier part evaluates the same q-grid quadrature of the same kernel, to the
 Ewald tolerance.  Assembly per vesicle, one target latitude at a time: the kernel table (6
 symmetric components x Mq sources, ``ewald.smooth_kernel_tables``), Q_q^T by the transposed
-transform, then the p-grid analysis matrix (SelfOperators._assemble without rotations).
+transform, then the fast p-grid analysis along the target axis (singular.project_rows; as
+SelfOperators._assemble without rotations).
 """
 from __future__ import annotations
 
@@ -26,7 +27,7 @@ import numpy as np
 
 from .. import sph
 from .._kernels import ewald as _ewald
-from .singular import FULL, SelfOperators, analysis_matrix
+from .singular import SelfOperators, project_rows
 
 NONE = np.empty((0, 0, 0))
 
@@ -51,7 +52,7 @@ class OwnSmoothOperators:
         def store(v):
             S, D = self._assemble(trg[v], src[v], w[v], nw[v], want_single, want_double)
             if want_single:
-                self.single[v] = S / viscosity
+                np.divide(S, viscosity, out=self.single[v])   # in place: no (3C)^2 temporary
             if want_double:
                 self.double[v] = D
         map_vesicles(store, range(N), p)
@@ -66,7 +67,6 @@ class OwnSmoothOperators:
         p, q = self.p, self.q
         Tp, Tq = sph.transform(p), sph.transform(p, q)
         C = sph.n_coeffs(p)
-        Pm = analysis_matrix(p)                                       # (C, Mp)
         x = np.ascontiguousarray(x, dtype=np.float64).reshape(Tp.nlat, Tp.nlon, 3)
         y = np.ascontiguousarray(y, dtype=np.float64)
         w = np.ascontiguousarray(w, dtype=np.float64)
@@ -79,14 +79,8 @@ class OwnSmoothOperators:
                                         ker["S"] if want_single else NONE, ker["D"] if want_double else NONE)
             for k in kinds:
                 rows[k][i] = Tq.synth_transpose(ker[k])                  # (J, 6, C)
-        out = []
-        for k in ("S", "D"):
-            if k not in rows:
-                out.append(None)
-                continue
-            proj = (Pm @ rows[k].reshape(Tp.npts, 6 * C)).reshape(C, 6, C)   # (k', ab, k)
-            full = proj[:, FULL]                                            # (k', 3, 3, k)
-            out.append(-np.ascontiguousarray(full.transpose(1, 0, 2, 3)).reshape(3 * C, 3 * C))
+        out = [None if k not in rows else project_rows(rows.pop(k).reshape(Tp.npts, 6, C), p, scale=-1.0)
+               for k in ("S", "D")]
         return out[0], out[1]
 
     def apply(self, f, g=None):

@@ -51,18 +51,20 @@ def graham_sloan_weights(q):
     return np.repeat(lam, 2 * q)
 
 
-@lru_cache(maxsize=16)
-def analysis_matrix(p):
-    """P on the p-grid as a dense matrix (C, M)."""
-    T = sph.transform(p)
-    return np.ascontiguousarray(T.analysis(np.eye(T.npts)).T)
-
-
-def _rotate_back(rows, p, theta0, phi0s):
-    """Apply R_t^T = R_z(phi0)^T R_y(theta0)^T to full-layout rows (..., J, ..., K): J targets on one latitude."""
-    out = sph.apply_degree_blocks(rows, p, sph.wigner_blocks(p, float(theta0)), transpose=True)  # D_y^T on rows
-    alpha = -np.asarray(phi0s).reshape((-1,) + (1,) * (rows.ndim - 2))
-    return sph.rotate_z(out, p, alpha)                                # D_z(phi0)^T = D_z(-phi0)
+def project_rows(rows, p, scale=1.0):
+    """scale P R for the rows R (M, 6, k >= C) of the p-grid targets (the 6 components a <= b
+    of a symmetric kernel, SYM; columns: density coefficients), by the fast analysis along
+    the target axis (sph.Transform.analysis_rows), laid out as the (3C, 3C) operator with
+    blocks [a, b] = component FULL[a, b] (the density in the reduced space: k' < C)."""
+    C = sph.n_coeffs(p)
+    M, _, k = rows.shape
+    proj = sph.transform(p).analysis_rows(rows.reshape(M, 6 * k), scale=scale).reshape(C, 6, k)
+    out = np.empty((3, C, 3, C))
+    for ab, (a, b) in enumerate(zip(*SYM)):
+        out[a, :, b] = proj[:, ab, :C]
+        if a != b:
+            out[b, :, a] = proj[:, ab, :C]
+    return out.reshape(3 * C, 3 * C)
 
 
 class SelfOperators:
@@ -89,7 +91,7 @@ class SelfOperators:
         def store(v):               # one vesicle's float64 operators at a time (peak memory)
             S, D = self._assemble(coeffs[v], want_single, want_double)
             if want_single:
-                self.single[v] = S / viscosity
+                np.divide(S, viscosity, out=self.single[v])   # in place: no (3C)^2 temporary
             if want_double:
                 self.double[v] = D
         threads.map_vesicles(store, range(nves), p)
@@ -101,36 +103,38 @@ class SelfOperators:
 
     def _assemble(self, X, want_single, want_double):
         """Both kernels are symmetric in (a, b): only the 6 components a <= b (SYM) are
-        integrated, rotated back and projected; the rows of all targets are collected and
-        projected on the p-grid with one GEMM at the end."""
+        integrated, rotated back and projected.  The z-rotation of the surface depends on the
+        target's longitude alone: done once for all latitudes; per latitude remain the tilt
+        R_y(theta0), the synthesis, the kernel tables, Q^T and the rotations back.  The rows
+        of all targets are projected on the p-grid by the fast analysis along the target axis
+        (project_rows)."""
         p, q = self.p, self.q
         Tp, Tq = sph.transform(p), sph.transform(p, q)
         C, K = sph.n_coeffs(p), sph.n_full(p)
-        Pm = analysis_matrix(p)                                        # (C, M)
         lam_w = graham_sloan_weights(q) / np.repeat(Tq.sin_theta, Tq.nlon)  # Lambda / sin(theta)
         Xt_grid = Tp.synth(X).T.reshape(Tp.nlat, Tp.nlon, 3)
         kinds = [w for w, on in (("S", want_single), ("D", want_double)) if on]
         rows = {w: np.empty((Tp.nlat, Tp.nlon, 6, K)) for w in kinds}   # R_t^T Q^T (Lambda W K) per target
         phis = Tp.phi
         ker = {w: np.empty((len(phis), 6, Tq.npts)) for w in kinds}      # kernel x weights (stokes.self_kernel_tables)
+        Xz = sph.rotate_z(np.broadcast_to(X, (len(phis), 3, C)), p, phis[:, None])   # f o R_z(phi0), (J, 3, K)
+        z_back = sph.z_rotation_tables(p, -phis[:, None])                    # D_z(phi0)^T = D_z(-phi0)
         for i0, theta0 in enumerate(Tp.theta):
             # rotated surface, one per target on this latitude: (J, 3, Mq) with derivatives
-            Xr = sph.rotate_y(sph.rotate_z(np.broadcast_to(X, (len(phis), 3, C)), p, phis[:, None]), p, theta0)
-            x, xt, xp = Tq.synth_first(Xr)
+            blocks = sph.wigner_blocks(p, float(theta0))
+            x, xt, xp = Tq.synth_first(sph.apply_degree_blocks(Xz, p, blocks))
             stokes.self_kernel_tables(np.ascontiguousarray(Xt_grid[i0]), x, xt, xp, lam_w,
                                       ker["S"] if want_single else NONE, ker["D"] if want_double else NONE)
             for which in kinds:
                 R = Tq.synth_transpose(ker[which], full=True)                       # (J, 6, K)
-                rows[which][i0] = _rotate_back(R, p, theta0, phis)
+                back = sph.apply_degree_blocks(R, p, blocks, transpose=True)        # D_y(theta0)^T
+                rows[which][i0] = sph.rotate_z(back, p, None, tables=z_back)
         out = []
         for which in ("S", "D"):
             if which not in rows:
                 out.append(None)
                 continue
-            R = rows[which].reshape(Tp.npts, 6 * K)
-            proj = (Pm @ R).reshape(C, 6, K)[:, :, :C]                 # (k', ab, k): density in the reduced space
-            full = proj[:, FULL]                                         # (k', 3, 3, k)
-            out.append(np.ascontiguousarray(full.transpose(1, 0, 2, 3)).reshape(3 * C, 3 * C))
+            out.append(project_rows(rows.pop(which).reshape(Tp.npts, 6, K), p))
         return out[0], out[1]
 
     # ------------------------------------------------------------------ apply
