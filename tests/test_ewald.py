@@ -332,7 +332,7 @@ def test_own_smooth_operators_are_the_smooth_share_in_coefficient_space(rng):
 @pytest.mark.parametrize("tol, period", [(1e-6, 7.5), (1e-10, 7.5), (1e-6, None),
                                          pytest.param(1e-10, None, marks=pytest.mark.slow)])
 def test_layer_potentials_with_the_own_vesicle_in_the_set_up_match_the_old_mode(rng, monkeypatch, tol, period):
-    """LayerPotentials.apply with the ewald far field, Settings.ewald_own "smooth" (the default)
+    """LayerPotentials.apply with the ewald far field, Settings.ewald_own "smooth"
     against "subtract" and, in free space, against the direct backend, both layers (lambda != 1),
     27 spheres in a periodic box, 8 in free space; the cutoff 1.2 (below the spheres' diameter:
     most own pairs beyond it)."""
@@ -364,6 +364,34 @@ def test_layer_potentials_with_the_own_vesicle_in_the_set_up_match_the_old_mode(
     if period is None:
         lp = LayerPotentials(S, lam=lam, settings=Settings(backend="direct"))
         assert rel_err(out["smooth"], lp.apply(f, g)) < tol
+
+
+def test_ewald_own_auto_takes_smooth_when_the_set_up_pays_over_the_applications(rng):
+    """Settings.ewald_own "auto" (the default): the own smooth operators when the cost model's
+    saving per application times applies_per_setup exceeds their set-up, else the subtraction in
+    the iteration; the figures of the choice are kept (lp.own_auto) and the two choices give the
+    same velocities to the Ewald tol."""
+    from vesflow.layerpot.evaluator import APPLIES_PER_SETUP, LayerPotentials, Settings
+    p, side = 6, 3
+    ijk = np.stack(np.meshgrid(*[np.arange(side)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    centres = 2.5 * (ijk + 0.5) + rng.uniform(-0.1, 0.1, ijk.shape)
+    S = Surface(np.stack([shapes.make_shape("sphere", p, center=tuple(c)) for c in centres]), p)
+    f = rng.standard_normal((len(centres), 3, sph.n_coeffs(p)))
+    out = {}
+    for applies, want in ((1e6, "smooth"), (1e-3, "subtract")):
+        lp = LayerPotentials(S, settings=Settings(backend="ewald", fmm_eps=1e-6, period=7.5, ewald_own="auto",
+                                                  applies_per_setup=applies))
+        a = lp.own_auto
+        assert a["saving"] > 0 and a["setup"] > 0 and a["applies"] == applies
+        assert lp.far_own == want and (lp.own_ops is not None) == (want == "smooth")
+        out[want] = lp.apply(f)
+    assert rel_err(out["smooth"], out["subtract"]) < 1e-6
+    lp = LayerPotentials(S, settings=Settings(backend="ewald", fmm_eps=1e-6, period=7.5))
+    a = lp.own_auto
+    assert a["applies"] == APPLIES_PER_SETUP
+    assert lp.far_own == ("smooth" if a["saving"] * APPLIES_PER_SETUP > a["setup"] else "subtract")
+    with pytest.raises(ValueError, match="ewald_own"):
+        Settings(ewald_own="smoth")
 
 
 # ------------------------------------------------------------------ periodic

@@ -193,7 +193,7 @@ def test_periodic_neighbours_across_the_face_are_exchanged(part):
     stats = {}
     collision.contacts(S, 2 * P, 6.0, part=part2, stats=stats)
     assert stats["received"] == 1
-    st = Settings(backend="ewald", fmm_eps=1e-10, period=6.0)
+    st = Settings(backend="ewald", fmm_eps=1e-10, period=6.0, ewald_own="smooth")
     serial = LayerPotentials(S, lam=[1.0, 0.5], settings=st)
     dist = LayerPotentials(S, lam=[1.0, 0.5], settings=st, part=part2)
     assert dist.far.smooth_own and serial.far.smooth_own

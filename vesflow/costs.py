@@ -192,6 +192,8 @@ def estimate(scene, opts=None, near=True):
         t_far = {"fmm": t_fmm, "ewald": t_ewald}.get(backend, t_direct) or 0.0
     # ewald: the own vesicle's smooth share removed by per-vesicle operators E_v (Settings.ewald_own
     # "smooth", vesflow.layerpot.own_smooth): as many bytes as the self operators, one more GEMV
+    # (-ves_ewald_own auto, the default, may take "subtract" for a run of few GMRES iterations
+    # per set-up: no E_v, a dearer far field; the memory counted here is the larger of the two)
     mem_own = mem_self if backend == "ewald" else 0
     t_own = mem_own / BANDWIDTH
     t_near = max(pairs, 0) * NEAR_EVALS * Mq * NEAR_SECONDS_PER_EVAL / max(1, _threads()) * (2 if dl else 1)

@@ -106,6 +106,10 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_far", str, "auto", "far-field sum: auto = the faster of direct and fmm by the cost model "
        "measured on this machine (docs/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
        choices=("auto", "direct", "fmm", "ewald")),
+    _O("-ves_ewald_own", str, "auto", "ewald far field, a vesicle's own sources: smooth = their Fourier share removed "
+       "by per-vesicle operators built once per set-up (a cheaper GMRES iteration, a dearer set-up), subtract = "
+       "in every iteration, auto = smooth when the cost model says the set-up pays over 15 applications per set-up "
+       "(docs/far_field.md)", "quadrature", choices=("auto", "smooth", "subtract")),
     _O("-ves_far_tol", float, 1e-8, "requested relative accuracy of the fmm / ewald far-field sum",
        "quadrature", gt=0, lt=1),
     _O("-ves_pc_lag", int, 50, "rebuild the block preconditioner from the current shapes after at most this "

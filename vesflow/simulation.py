@@ -67,7 +67,8 @@ class Run:
         self.timers = Timers()
         settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"], near_blend=opts["near_blend"],
                             backend=_backend(opts["far"]), fmm_eps=opts["far_tol"],
-                            period=scene.periodic_length or None, self_precision=opts["self_precision"])
+                            period=scene.periodic_length or None, self_precision=opts["self_precision"],
+                            ewald_own=opts["ewald_own"])
         params = vesicle_params(scene)
         phys = physics(scene)
         coeffs = initial_coefficients(scene) if checkpoint is None else np.asarray(checkpoint["coeffs"])

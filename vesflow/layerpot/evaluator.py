@@ -26,19 +26,36 @@ from .own_smooth import OwnSmoothOperators
 from .singular import SelfOperators
 
 
+# applications of the layer potentials per set-up that ewald_own "auto" weighs the set-up of E_v
+# against (the GMRES iterations of the solves sharing a set-up plus their right-hand sides):
+# 18.5 in the periodic Taylor-Green run of 64 cells (docs/periodic.md: 2777 applications, 150
+# set-ups), 7-12 in the dilute runs of docs/accuracy_cost.md.  A constant, not the run's own
+# count, so that a restarted run makes the same choices as an uninterrupted one (as
+# costs.pc_rebuild_iterations)
+APPLIES_PER_SETUP = 15.0
+# cost of the own smooth operators E_v (ewald_own "auto"), CPU seconds of one thread: set-up per
+# (p-grid target, q-grid source) pair of a vesicle and layer; the GEMV per byte of the operators
+# (N = 512, p = 16, q = 32: 21.0 s for 512 x 544 x 2112 pairs, 0.20 s for 2.9 GB;
+# benchmarks/iteration.py, docs/far_field.md "The own vesicle in the set-up")
+OWN_SETUP_PAIR = 3.6e-8
+OWN_GEMV_BYTE = 7.0e-11
+
+
 class Settings:
     """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
 
     def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
-                 near_blend=0.0, self_precision="double", ewald_own="smooth"):
+                 near_blend=0.0, self_precision="double", ewald_own="auto", applies_per_setup=APPLIES_PER_SETUP):
         self.q_self, self.q_far = q_self, q_far
         from .ewald import OWN_MODES
-        if ewald_own not in OWN_MODES:
-            raise ValueError(f"ewald_own = {ewald_own!r}: must be one of {', '.join(OWN_MODES)}")
+        if ewald_own not in OWN_MODES + ("auto",):
+            raise ValueError(f"ewald_own = {ewald_own!r}: must be one of auto, {', '.join(OWN_MODES)}")
         # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
-        # operators built in the set-up, vesflow.layerpot.own_smooth) or "subtract" (in the
-        # GMRES iteration); docs/far_field.md, "The own vesicle in the set-up"
+        # operators built in the set-up, vesflow.layerpot.own_smooth), "subtract" (in the GMRES
+        # iteration) or "auto": smooth when the cost model says the set-up pays for itself over
+        # `applies_per_setup` applications; docs/far_field.md, "The own vesicle in the set-up"
         self.ewald_own = ewald_own
+        self.applies_per_setup = float(applies_per_setup)
         self.near_blend = float(near_blend)   # width of the near/smooth blend beyond h_n, in units of h_n
         self.near_factor, self.backend, self.fmm_eps = near_factor, backend, fmm_eps
         self.period = period or None     # triply periodic cube (or box) side, None: free space
@@ -108,6 +125,7 @@ class LayerPotentials:
         self.far = None
         self.near = None
         self.own_ops = None
+        self.own_auto = None          # ewald_own "auto": the cost model's figures of the choice
         self.far_own = self._far_own_mode(gq)
         if part is not None:
             far_args = self._halo_setup(gq)
@@ -145,8 +163,11 @@ class LayerPotentials:
         area = gq.dA.reshape(self.N, -1).sum(axis=1)
         tot = float(area.sum()) if self.part is None else self.part.sum(float(area.sum()))
         self._own_skip = (self.Tq.npts, tot / max(self.N_total, 1))
-        if s.ewald_own != "smooth" or s.period is None:
-            return s.ewald_own
+        mode = s.ewald_own
+        if mode == "auto":
+            mode = self._own_auto(gq)
+        if mode != "smooth" or s.period is None:
+            return mode
         pts = np.concatenate([gq.X.reshape(self.N, -1, 3), self.local.points().reshape(self.N, -1, 3)], axis=1)
         ext = (pts.max(axis=1) - pts.min(axis=1)).max(axis=0, initial=0.0)
         if self.part is not None:
@@ -154,6 +175,35 @@ class LayerPotentials:
         from .ewald import own_extent_ok
         L = np.broadcast_to(np.asarray(s.period, dtype=float), (3,))
         return "smooth" if own_extent_ok(ext, 0.49 * float(L.min()), s.period) else "subtract"
+
+    def _own_auto(self, gq):
+        """ewald_own "auto": "smooth" when the cost model's saving per application (the Ewald
+        sum without the own pairs and subtraction, less the E_v GEMV) times the expected
+        applications per set-up exceeds the set-up of E_v, else "subtract".  Figures of the
+        whole problem (every rank decides the same)."""
+        from .far import predicted_ewald
+        s, N, mq, mp = self.settings, self.N_total, self.Tq.npts, self.Tp.npts
+        lo = gq.X.reshape(-1, 3).min(axis=0) if gq.X.size else np.zeros(3)
+        hi = gq.X.reshape(-1, 3).max(axis=0) if gq.X.size else np.zeros(3)
+        if self.part is not None:
+            lo = np.array([-self.part.max(float(-x)) for x in lo])
+            hi = np.array([self.part.max(float(x)) for x in hi])
+        corners = np.stack([lo, hi])
+        nsrc, ntrg = N * mq, N * mp
+        try:
+            t_sub, _ = predicted_ewald(corners, nsrc, ntrg, N * mp * mq, s.fmm_eps, threads=1, period=s.period,
+                                       double_layer=self.want_double)
+            t_smooth, _ = predicted_ewald(corners, nsrc, ntrg, 0, s.fmm_eps, threads=1, period=s.period,
+                                          double_layer=self.want_double, own_skip=self._own_skip)
+        except Exception:            # no Ewald grid fits: the backend will not be ewald either
+            return "subtract"
+        layers = 1 + self.want_double
+        C3 = 3 * sph.n_coeffs(self.p)
+        gemv = N * layers * C3 * C3 * np.dtype(s.self_dtype).itemsize * OWN_GEMV_BYTE
+        setup = N * layers * mp * mq * OWN_SETUP_PAIR
+        saving = layers * (t_sub - t_smooth) - gemv       # the own pairs are real-space work, per layer
+        self.own_auto = {"saving": saving, "setup": setup, "applies": s.applies_per_setup}
+        return "smooth" if saving * s.applies_per_setup > setup else "subtract"
 
     def _halo_setup(self, gq):
         """With a partition: the far-field backend (and Ewald parameters) for the whole problem,
