@@ -35,9 +35,10 @@ from .singular import SelfOperators
 APPLIES_PER_SETUP = 15.0
 # cost of the own smooth operators E_v (ewald_own "auto"), CPU seconds of one thread: set-up per
 # (p-grid target, q-grid source) pair of a vesicle and layer; the GEMV per byte of the operators
-# (N = 512, p = 16, q = 32: 21.0 s for 512 x 544 x 2112 pairs, 0.20 s for 2.9 GB;
-# benchmarks/iteration.py, docs/far_field.md "The own vesicle in the set-up")
-OWN_SETUP_PAIR = 3.6e-8
+# (p = 16, q = 32: 27-31 ms per vesicle, single layer, benchmarks/setup_operators.py, i.e. 2.5e-8
+# per pair of 544 x 2112; 0.20 s for 2.9 GB at N = 512, benchmarks/iteration.py; docs/far_field.md
+# "The own vesicle in the set-up", "Set-up of the self and own smooth operators")
+OWN_SETUP_PAIR = 2.5e-8
 OWN_GEMV_BYTE = 7.0e-11
 
 
