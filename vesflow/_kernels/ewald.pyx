@@ -615,6 +615,17 @@ class RealSpace:
                      np.ascontiguousarray(g, dtype=np.float64), out)
 
 
+cdef void _gather_columns(const double[:, ::1] a, const long[::1] order, double[:, ::1] out, Py_ssize_t col) noexcept:
+    """out[col + c, k] = a[order[k], c] (c < 3): rows in cell order into columns (OpenMP)."""
+    cdef Py_ssize_t k, j, n = order.shape[0]
+    with nogil:
+        for k in prange(n, schedule="static"):
+            j = order[k]
+            out[col, k] = a[j, 0]
+            out[col + 1, k] = a[j, 1]
+            out[col + 2, k] = a[j, 2]
+
+
 def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const double[:, ::1] g, double[:, ::1] out):
     cdef Py_ssize_t ns = rs.ns, nt = rs.nt
     cdef bint do_sl = f.shape[0] > 0, do_dl = g.shape[0] > 0
@@ -628,14 +639,17 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
         return
     # the densities in cell order, columns of ld rows (the padding rows 0)
     cdef Py_ssize_t ld = rs.ld
-    cols = []
-    if do_sl:
-        cols.append(np.asarray(f).T)
-    if do_dl:
-        cols += [np.asarray(nw).T, np.asarray(g).T]
-    dens_np = np.zeros((3 * len(cols), ld))
-    dens_np[:, :ns] = np.concatenate(cols, axis=0)[:, rs.sorder]
+    dens_np = np.empty((3 * (do_sl + 2 * do_dl), ld))
+    dens_np[:, ns:] = 0.0
     cdef double[:, ::1] dens = dens_np
+    cdef long[::1] sorder = rs.sorder
+    cdef Py_ssize_t col = 0
+    if do_sl:
+        _gather_columns(f, sorder, dens, col)
+        col += 3
+    if do_dl:
+        _gather_columns(nw, sorder, dens, col)
+        _gather_columns(g, sorder, dens, col + 3)
     cdef double[:, ::1] ys = rs.ys, xw = rs.xw, xo = rs.xo, src = rs.src
     cdef long[::1] cstart = rs.cstart, tstart = rs.tstart, crun = rs.crun, rstart = rs.rstart, rvi = rs.rvi
     cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells, ostart = rs.ostart
