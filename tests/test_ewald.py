@@ -215,6 +215,64 @@ def test_avx512_and_portable_real_space_loops_agree(rng, period, own):
     assert rel_err(a, b) < 1e-13
 
 
+def plain_real_space(src, sid, trg, tid, f, nw, g, xi, rc, period):
+    """The real-space sum over the other vesicles' sources inside rc (minimum image when
+    periodic), pair by pair with scipy's erfc (module docstring of ewald.pyx), r = 0: -G^F(0) f."""
+    out = np.zeros(trg.shape)
+    for t in range(trg.shape[0]):
+        keep = sid != tid[t]
+        r = trg[t] - src[keep]
+        if period is not None:
+            r -= period * np.round(r / period)
+        rr = np.einsum("ij,ij->i", r, r)
+        at0 = rr == 0.0
+        ins = (rr < rc * rc) & ~at0
+        r, rr, fk, nk, gk = r[ins], rr[ins], f[keep][ins], nw[keep][ins], g[keep][ins]
+        rn = np.sqrt(rr)
+        z = xi * rn
+        e = np.exp(-z * z)
+        a1 = erfc(z) - 2 * z * e / math.sqrt(math.pi)
+        a2 = erfc(z) + 2 * z * e / math.sqrt(math.pi)
+        rf = np.einsum("ij,ij->i", r, fk)
+        u = (a1 / rn)[:, None] * fk + (a2 * rf / rn ** 3)[:, None] * r
+        A = 4 * xi ** 3 * e / math.sqrt(math.pi)
+        B = -2 * (3 * erfc(z) + (6 * z + 4 * z ** 3) * e / math.sqrt(math.pi)) / rn ** 5
+        r_n, r_g, g_n = (np.einsum("ij,ij->i", *p) for p in ((r, nk), (r, gk), (gk, nk)))
+        u += A[:, None] * (r_n[:, None] * gk + r_g[:, None] * nk + g_n[:, None] * r) + (B * r_n * r_g)[:, None] * r
+        out[t] = u.sum(0) - 4 * xi / math.sqrt(math.pi) * f[keep][at0].sum(0)
+    return out / (8 * math.pi)
+
+
+@pytest.mark.parametrize("period, rc_frac, radius_frac", [(None, 0.28, 0.3), (6.0, 0.28, 0.3), (6.0, 0.45, 0.05),
+                                                          (1.7, 0.28, 0.3)])
+def test_real_space_in_place_matches_a_plain_pair_sum(rng, period, rc_frac, radius_frac):
+    """The real space with the own vesicle left out (sources in place, cell ranges culled
+    against each target, the periodic shift applied to the target) equals a plain sum over the
+    pairs inside rc to rounding, on both vector paths: free space, a period of 7 cells per axis
+    (image shifts per cell row), one of 4 (minimum image per pair) and a small box; a target on
+    another vesicle's source (r = 0)."""
+    L = 6.0 if period is None else period
+    src, sid, trg, tid = clusters(rng, 8, 40, L, radius_frac * min(L, 2.0), 10, free_trg=5)
+    trg[0] = src[3]
+    tid[0] = -7
+    f, nw, g = rng.standard_normal((3, src.shape[0], 3))
+    rc = rc_frac * L
+    params = ewald.make_params(1e-8, ewald._exponents(math.log(1e8))[0] / rc, rc, np.concatenate([src, trg]),
+                               period=period)
+    es = ewald.EwaldSum(src, sid, trg, tid, period=period, params=params, double_layer=True, own="smooth")
+    ref = plain_real_space(src, sid, trg, tid, f, nw, g, params.xi, rc, period)
+    try:
+        for path in (True, False):
+            ek.set_vector_path(path)
+            assert rel_err(es.real_space(f, nw, g), ref) < 1e-13
+            assert rel_err(es.real_space(f), plain_real_space(src, sid, trg, tid, f, 0 * nw, 0 * g, params.xi, rc,
+                                                              period)) < 1e-13
+    finally:
+        ek.set_vector_path(True)
+    if period is not None and rc_frac > 0.4:
+        assert np.any(es._real.ncell < 5)                  # the minimum-image case is the one tested
+
+
 # ------------------------------------------------------------------ own="smooth"
 def own_smooth_share(src, sid, trg, tid, f, nw, g, xi):
     """sum over the target's own sources of G^F f + T^F:(g nw) / (8 pi) (ek.smooth_part), (T, 3)."""

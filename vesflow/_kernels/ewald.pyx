@@ -30,8 +30,9 @@ included, and subtracts the own vesicle's full kernel at the given (unwrapped) p
     sum_{(s, n), 0 < |r| < rc} G^R(r) f_s  -  sum_{s own, r != 0} G(x_t - y_s) f_s  -  sum_{r = 0} G^F(0) f_s
 
 (and the same for ``T``; with ``skip_own``, EwaldSum(own="smooth"), the target's own vesicle
-is left out of the sum instead and nothing is subtracted: a cell's targets are grouped by own
-vesicle, one candidate buffer per group without that vesicle's sources).  Inside rc the own
+is left out of the sum instead and nothing is subtracted: a cell's sources are sorted by
+vesicle, so that a vesicle's sources in a cell form one run, and the target's own runs are
+skipped).  Inside rc the own
 terms are ``G^R - G = -G^F``, beyond it ``-G``
 (``G^R`` is below tol there), so that the Fourier part over ALL sources plus this gives the
 Ewald sum without the own vesicle.  A coincident pair (``r = 0``) is skipped like the direct
@@ -39,10 +40,13 @@ sum skips it, i.e. ``-G^F(0) f`` is added to cancel the Fourier part's share.  P
 minimum image (the image shift of each neighbour cell; per pair only along an axis of fewer
 than 5 cells), ``rc < L/2`` per axis (the caller guarantees it, so a pair inside rc is one
 image).  Cell lists (cells of side >= rc / 2, sources and targets sorted by cell once per
-geometry) and an OpenMP ``prange`` over the cells holding targets: the sources of a cell's
-125 neighbour cells are copied once into a buffer (structure of arrays, image shifts added)
-that every target of the cell sums in one vectorized loop (``ewaldsum.h``: erfc and exp
-without libm, out-of-cutoff pairs masked); the own-vesicle sums are the vectorized direct
+geometry) and an OpenMP ``prange`` over the cells holding targets.  The sources stay in place
+(positions and, per apply, densities in cell-ordered structure-of-arrays columns): the 125
+neighbour cells go as 25 rows along the last axis (consecutive cells of a row are one range of
+sources); per target, the rows and cells whose box is farther than rc are dropped and the
+remaining ranges (without the own runs) summed in one vectorized loop with the target moved by
+minus the image shift (``ewaldsum.h``: erfc and exp without libm, out-of-cutoff pairs
+masked); the own-vesicle subtraction (``skip_own`` false) uses the vectorized direct
 sums of ``pairsum.h``.  Every output row ACCUMULATES (``out += ...``).
 """
 import numpy as np
@@ -53,8 +57,12 @@ from libc.stdlib cimport malloc, free
 
 cdef extern from "ewaldsum.h" nogil:
     enum: VF_BLOCK
-    void vf_ewald_real(const double* b, Py_ssize_t n, Py_ssize_t ld, const double* x, double xi, double rc2,
-                       const double* mL, const double* iL, int mi, int sl, int dl, double* o)
+    ctypedef struct vf_range:
+        Py_ssize_t s0
+        Py_ssize_t s1
+        double x[3]
+    void vf_ewald_real(const double* y, const double* d, Py_ssize_t ld, const vf_range* rg, Py_ssize_t nr,
+                       double xi, double rc2, const double* mL, const double* iL, int mi, int sl, int dl, double* o)
     void vf_real_coefficients(double r, double xi, double* c)
     void vf_smooth_row(const double* x, const double* y0, const double* y1, const double* y2, const double* w,
                        const double* n0, const double* n1, const double* n2, Py_ssize_t S, double xi,
@@ -79,6 +87,8 @@ cdef double _SERIES_Z = 0.2
 # cells of side >= rc / SUB, (2 SUB + 1)^3 neighbour cells: 2 visits (2.5 rc)^3 instead of
 # (3 rc)^3 for a sphere of (4/3) pi rc^3
 cdef long SUB = 2
+cdef enum:
+    MAXW = 7                     # 2 SUB + 1 at most (the neighbour positions per axis)
 
 
 
@@ -339,38 +349,64 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
 ctypedef struct _Cells:
     long n[3]
     double L[3]
+    double lo[3]              # the box's corner and the cells' sides (neighbour-cell culling)
+    double side[3]
     bint periodic
     bint mi_any
     double mL[3]              # L on an axis of fewer than 2 SUB + 1 cells (minimum image per pair), else 0
     double iL[3]
     double rc2
+    double rc2_cull           # rc^2 with a relative margin: a cell is skipped when farther than this
     double xi
-    const double* ys          # wrapped source positions, cell order
+    Py_ssize_t ld             # leading dimension of the source columns (>= S + VF_BLOCK)
+    const double* ys          # wrapped source positions, cell order, 3 columns of ld
+    const double* dens        # densities in cell order, columns of ld: f (3), nw, g (3 + 3)
     const long* cstart        # sources of cell c: cstart[c] .. cstart[c + 1]
+    const long* crun          # runs (one vesicle's sources in one cell) of cell c: crun[c] .. crun[c + 1]
+    const long* rstart        # sources of run r: rstart[r] .. rstart[r + 1]
+    const long* rvi           # vesicle index of run r
     const long* tstart        # targets (cell order) of cell c: tstart[c] .. tstart[c + 1]
     const double* xw          # wrapped targets, cell order
     const long* torder        # original index of each cell-ordered target
-    const double* fc          # densities in cell order (NULL: layer absent)
-    const double* nwc
-    const double* gc
-    const long* svi           # own="smooth": vesicle index of each cell-ordered source (NULL: own pairs summed)
-    const long* tvi           # and of each cell-ordered target (-1: none; a cell's targets grouped by it)
+    const long* tvi           # own="smooth": own vesicle of each cell-ordered target (-1: none); NULL: own pairs summed
+    bint do_sl
+    bint do_dl
+
+
+cdef inline double _gap(double x, double a, double w) noexcept nogil:
+    """Distance from x to the interval [a, a + w] (0 inside)."""
+    if x < a:
+        return a - x
+    if x > a + w:
+        return x - a - w
+    return 0.0
 
 
 cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
-    """out[3 torder[t] + a] += real-space sum of every target t of cell c."""
-    cdef long c0 = c // (b.n[1] * b.n[2]), c1 = (c // b.n[2]) % b.n[1], c2 = c % b.n[2]
+    """out[3 torder[t] + a] += real-space sum of every target t of cell c.  The neighbour cells
+    go by rows along axis 2 (consecutive cells of one image shift hold one range of sources);
+    per group of targets with one own vesicle, the rows' pieces without that vesicle's runs are
+    listed once; per target, the rows and cells farther than rc from it are dropped, the pieces
+    clipped to the remaining cells and summed in place, the target moved by minus their shift."""
+    cdef long cc[3]
     cdef long lo[3]
     cdef long hi[3]
-    cdef long cc[3]
-    cdef long nb[125]
-    cdef double sh[375]
-    cdef long nnb = 0, d0, d1, d2, e0, e1, e2, t, j, m, k, nc = 0, s
+    cdef long ec[3 * MAXW]                    # wrapped cell index of each neighbour position, per axis (2 SUB + 1 each)
+    cdef double shc[3 * MAXW]                 # image shift, per axis
+    cdef double bxc[3 * MAXW]                 # cell corner (unwrapped), per axis
+    cdef long nc3[3]
+    cdef double gp[3 * MAXW]                  # per target: gap to each neighbour position, per axis, squared
+    cdef long j, k, i0, i1, i2, t, s, r, a, ca, cb, nr, np_, skip, cap = 0, first, last, t0, t1, base, s0, s1
+    cdef long nrow, row
     cdef double o[3]
-    cdef bint do_sl = b.fc != NULL, do_dl = b.gc != NULL
-    cc[0] = c0
-    cc[1] = c1
-    cc[2] = c2
+    cdef double x0, x1, x2, g01, gg
+    cdef vf_range* rg
+    cdef long* pc                       # pieces: 4 per piece (row, first and last position, unused)
+    cdef long* ps                       # pieces' source ranges: s0, s1
+    cdef long prow[MAXW * MAXW + 1]
+    cc[0] = c // (b.n[1] * b.n[2])
+    cc[1] = (c // b.n[2]) % b.n[1]
+    cc[2] = c % b.n[2]
     for j in range(3):
         if b.periodic and b.mL[j] != 0.0:
             lo[j] = 0
@@ -381,77 +417,119 @@ cdef void _cell_targets(const _Cells* b, long c, double* out) noexcept nogil:
         else:
             lo[j] = cc[j] - SUB if cc[j] >= SUB else 0
             hi[j] = cc[j] + SUB if cc[j] + SUB < b.n[j] else b.n[j] - 1
-    for d0 in range(lo[0], hi[0] + 1):
-        e0 = (d0 + b.n[0]) % b.n[0]
-        for d1 in range(lo[1], hi[1] + 1):
-            e1 = (d1 + b.n[1]) % b.n[1]
-            for d2 in range(lo[2], hi[2] + 1):
-                e2 = (d2 + b.n[2]) % b.n[2]
-                nb[nnb] = (e0 * b.n[1] + e1) * b.n[2] + e2
-                nc += b.cstart[nb[nnb] + 1] - b.cstart[nb[nnb]]
-                # the image of the neighbour cell next to cell c: source + shift
-                sh[3 * nnb] = b.L[0] * ((d0 - e0) // b.n[0]) if b.periodic else 0.0
-                sh[3 * nnb + 1] = b.L[1] * ((d1 - e1) // b.n[1]) if b.periodic else 0.0
-                sh[3 * nnb + 2] = b.L[2] * ((d2 - e2) // b.n[2]) if b.periodic else 0.0
-                nnb += 1
-    cdef long ncol = 3 + (3 if do_sl else 0) + (6 if do_dl else 0)
-    cdef long ld = (nc + VF_BLOCK - 1) // VF_BLOCK * VF_BLOCK, i, n_in, t0, t1, skip
-    cdef double* buf = NULL
-    cdef double* col
-    if nc > 0:
-        buf = <double*> malloc(ld * ncol * sizeof(double))
+        nc3[j] = hi[j] - lo[j] + 1
+        for k in range(nc3[j]):
+            ec[MAXW * j + k] = (lo[j] + k + b.n[j]) % b.n[j]
+            shc[MAXW * j + k] = b.L[j] * ((lo[j] + k - ec[MAXW * j + k]) // b.n[j]) if b.periodic else 0.0
+            bxc[MAXW * j + k] = b.lo[j] + (lo[j] + k) * b.side[j]
+    nrow = nc3[0] * nc3[1]
+    for i0 in range(nc3[0]):
+        for i1 in range(nc3[1]):
+            base = (ec[i0] * b.n[1] + ec[MAXW + i1]) * b.n[2]
+            for i2 in range(nc3[2]):
+                cap += b.crun[base + ec[2 * MAXW + i2] + 1] - b.crun[base + ec[2 * MAXW + i2]] + 1
+    cap += 2 * nrow + 1
+    rg = <vf_range*> malloc(cap * sizeof(vf_range))
+    pc = <long*> malloc(cap * 3 * sizeof(long))
+    ps = <long*> malloc(cap * 2 * sizeof(long))
     t0 = b.tstart[c]
     while t0 < b.tstart[c + 1]:
-        # the targets t0 .. t1 - 1 share their own vesicle (own="smooth": its sources are left
-        # out of their candidates; otherwise one group, nothing skipped)
-        t1 = b.tstart[c + 1]
-        skip = -1
-        if b.svi != NULL:
-            skip = b.tvi[t0]
-            t1 = t0 + 1
-            while t1 < b.tstart[c + 1] and b.tvi[t1] == skip:
-                t1 += 1
-        n_in = 0
-        if nc > 0:
-            # the candidates in structure-of-arrays columns of length ld: y + shift, f, nw, g
-            k = 0
-            for m in range(nnb):
-                for j in range(b.cstart[nb[m]], b.cstart[nb[m] + 1]):
-                    if skip >= 0 and b.svi[j] == skip:
-                        continue
-                    buf[k] = b.ys[3 * j] + sh[3 * m]
-                    buf[ld + k] = b.ys[3 * j + 1] + sh[3 * m + 1]
-                    buf[2 * ld + k] = b.ys[3 * j + 2] + sh[3 * m + 2]
-                    col = buf + 3 * ld
-                    if do_sl:
-                        col[k] = b.fc[3 * j]
-                        col[ld + k] = b.fc[3 * j + 1]
-                        col[2 * ld + k] = b.fc[3 * j + 2]
-                        col = col + 3 * ld
-                    if do_dl:
-                        col[k] = b.nwc[3 * j]
-                        col[ld + k] = b.nwc[3 * j + 1]
-                        col[2 * ld + k] = b.nwc[3 * j + 2]
-                        col[3 * ld + k] = b.gc[3 * j]
-                        col[4 * ld + k] = b.gc[3 * j + 1]
-                        col[5 * ld + k] = b.gc[3 * j + 2]
-                    k += 1
-            n_in = k
-            for j in range(ncol):                    # the padding rows: read (masked), never summed
-                for i in range(n_in, ld):
-                    buf[j * ld + i] = 0.0
+        # the targets t0 .. t1 - 1 share their own vesicle (skip; -1: none)
+        skip = b.tvi[t0] if b.tvi != NULL else -1
+        t1 = t0 + 1
+        while t1 < b.tstart[c + 1] and (b.tvi[t1] if b.tvi != NULL else -1) == skip:
+            t1 += 1
+        # the group's pieces, row by row: per segment of consecutive cells (one shift), its
+        # sources without the runs of vesicle skip
+        np_ = 0
+        for i0 in range(nc3[0]):
+            for i1 in range(nc3[1]):
+                row = i0 * nc3[1] + i1
+                prow[row] = np_
+                base = (ec[i0] * b.n[1] + ec[MAXW + i1]) * b.n[2]
+                i2 = 0
+                while i2 < nc3[2]:
+                    ca = i2
+                    while i2 + 1 < nc3[2] and ec[2 * MAXW + i2 + 1] == ec[2 * MAXW + i2] + 1:
+                        i2 += 1
+                    cb = i2
+                    i2 += 1
+                    a = b.cstart[base + ec[2 * MAXW + ca]]
+                    if skip >= 0:
+                        for r in range(b.crun[base + ec[2 * MAXW + ca]], b.crun[base + ec[2 * MAXW + cb] + 1]):
+                            if b.rvi[r] == skip:
+                                if b.rstart[r] > a:
+                                    pc[3 * np_] = base
+                                    pc[3 * np_ + 1] = ca
+                                    pc[3 * np_ + 2] = cb
+                                    ps[2 * np_] = a
+                                    ps[2 * np_ + 1] = b.rstart[r]
+                                    np_ += 1
+                                a = b.rstart[r + 1]
+                    s = b.cstart[base + ec[2 * MAXW + cb] + 1]
+                    if s > a:
+                        pc[3 * np_] = base
+                        pc[3 * np_ + 1] = ca
+                        pc[3 * np_ + 2] = cb
+                        ps[2 * np_] = a
+                        ps[2 * np_ + 1] = s
+                        np_ += 1
+        prow[nrow] = np_
         for t in range(t0, t1):
+            x0 = b.xw[3 * t]
+            x1 = b.xw[3 * t + 1]
+            x2 = b.xw[3 * t + 2]
+            for j in range(3):
+                for k in range(nc3[j]):
+                    gg = 0.0 if b.mL[j] != 0.0 else _gap(b.xw[3 * t + j], bxc[MAXW * j + k], b.side[j])
+                    gp[MAXW * j + k] = gg * gg
+            nr = 0
+            for i0 in range(nc3[0]):
+                for i1 in range(nc3[1]):
+                    g01 = gp[i0] + gp[MAXW + i1]
+                    if g01 > b.rc2_cull:
+                        continue
+                    # the row's cells within rc: first .. last (an interval: the distance is convex)
+                    first = -1
+                    last = -1
+                    for i2 in range(nc3[2]):
+                        if g01 + gp[2 * MAXW + i2] <= b.rc2_cull:
+                            if first < 0:
+                                first = i2
+                            last = i2
+                    if first < 0:
+                        continue
+                    row = i0 * nc3[1] + i1
+                    for k in range(prow[row], prow[row + 1]):
+                        ca = pc[3 * k + 1] if pc[3 * k + 1] > first else first
+                        cb = pc[3 * k + 2] if pc[3 * k + 2] < last else last
+                        if ca > cb:
+                            continue
+                        s0 = b.cstart[pc[3 * k] + ec[2 * MAXW + ca]]
+                        s1 = b.cstart[pc[3 * k] + ec[2 * MAXW + cb] + 1]
+                        s0 = ps[2 * k] if ps[2 * k] > s0 else s0
+                        s1 = ps[2 * k + 1] if ps[2 * k + 1] < s1 else s1
+                        if s0 >= s1:
+                            continue
+                        rg[nr].s0 = s0
+                        rg[nr].s1 = s1
+                        rg[nr].x[0] = x0 - shc[i0]
+                        rg[nr].x[1] = x1 - shc[MAXW + i1]
+                        rg[nr].x[2] = x2 - shc[2 * MAXW + pc[3 * k + 1]]
+                        nr += 1
             o[0] = 0.0
             o[1] = 0.0
             o[2] = 0.0
-            if n_in > 0:
-                vf_ewald_real(buf, n_in, ld, b.xw + 3 * t, b.xi, b.rc2, b.mL, b.iL, b.mi_any, do_sl, do_dl, o)
+            if nr > 0:
+                vf_ewald_real(b.ys, b.dens, b.ld, rg, nr, b.xi, b.rc2, b.mL, b.iL, b.mi_any, b.do_sl, b.do_dl, o)
             s = b.torder[t]
             out[3 * s] += o[0]
             out[3 * s + 1] += o[1]
             out[3 * s + 2] += o[2]
         t0 = t1
-    free(buf)
+    free(rg)
+    free(pc)
+    free(ps)
 
 
 class RealSpace:
@@ -492,18 +570,16 @@ class RealSpace:
             return (c[:, 0] * ncell[1] + c[:, 1]) * ncell[2] + c[:, 2]
 
         skey, tkey = key(sw), key(tw)
-        sorder = np.argsort(skey, kind="stable")
         vi = np.asarray(trg_vi, dtype=np.int64).reshape(-1)
         nv = len(src_off) - 1
-        # skip_own: a cell's targets grouped by their own vesicle (one candidate buffer per group)
+        src_vi = np.repeat(np.arange(nv, dtype=np.int64), np.diff(np.asarray(src_off, dtype=np.int64)))
+        # sources by cell, within a cell by vesicle (stable: each vesicle's run keeps its surface order)
+        sorder = np.lexsort((src_vi, skey))
         torder = np.lexsort((vi, tkey)) if skip_own else np.argsort(tkey, kind="stable")
         self.skip_own = bool(skip_own)
-        self.svi = self.tvi = None
-        if skip_own:
-            src_vi = np.repeat(np.arange(nv, dtype=np.int64), np.diff(np.asarray(src_off, dtype=np.int64)))
-            self.svi = np.ascontiguousarray(src_vi[sorder], dtype=np.int64)
-            self.tvi = np.ascontiguousarray(vi[torder], dtype=np.int64)
+        self.tvi = np.ascontiguousarray(vi[torder], dtype=np.int64) if skip_own else None
         self.ncell, self.length, self.periodic, self.xi, self.rc = ncell, len_np, bool(periodic), xi, rc
+        self.lo, self.side = lo_np, side
         self.ns, self.nt = ns, nt
         self.sorder = sorder
         self.cstart = np.zeros(ncells + 1, dtype=np.int64)
@@ -511,7 +587,16 @@ class RealSpace:
         self.tstart = np.zeros(ncells + 1, dtype=np.int64)
         self.tstart[1:] = np.cumsum(np.bincount(tkey, minlength=ncells))
         self.tcells = np.flatnonzero(np.diff(self.tstart)).astype(np.int64)   # cells holding targets
-        self.ys = np.ascontiguousarray(sw[sorder])
+        # runs: the sources of one vesicle in one cell (cell c's runs crun[c] .. crun[c + 1])
+        ks, vs = skey[sorder], src_vi[sorder]
+        heads = np.flatnonzero(np.r_[True, (ks[1:] != ks[:-1]) | (vs[1:] != vs[:-1])]) if ns else np.zeros(0, np.int64)
+        self.rstart = np.ascontiguousarray(np.r_[heads, ns], dtype=np.int64)
+        self.rvi = np.ascontiguousarray(vs[heads], dtype=np.int64)
+        self.crun = np.ascontiguousarray(np.searchsorted(heads, self.cstart), dtype=np.int64)
+        # source positions in place, structure of arrays, VF_BLOCK padding rows (read, masked)
+        self.ld = ns + VF_BLOCK
+        self.ys = np.zeros((3, self.ld))
+        self.ys[:, :ns] = sw[sorder].T
         self.xw = np.ascontiguousarray(tw[torder])
         # the targets with an own vesicle grouped by it (own-vesicle sums): original indices
         # oidx, given positions xo, vesicle v's at ostart[v] .. ostart[v + 1]
@@ -530,6 +615,17 @@ class RealSpace:
                      np.ascontiguousarray(g, dtype=np.float64), out)
 
 
+cdef void _gather_columns(const double[:, ::1] a, const long[::1] order, double[:, ::1] out, Py_ssize_t col) noexcept:
+    """out[col + c, k] = a[order[k], c] (c < 3): rows in cell order into columns (OpenMP)."""
+    cdef Py_ssize_t k, j, n = order.shape[0]
+    with nogil:
+        for k in prange(n, schedule="static"):
+            j = order[k]
+            out[col, k] = a[j, 0]
+            out[col + 1, k] = a[j, 1]
+            out[col + 2, k] = a[j, 2]
+
+
 def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const double[:, ::1] g, double[:, ::1] out):
     cdef Py_ssize_t ns = rs.ns, nt = rs.nt
     cdef bint do_sl = f.shape[0] > 0, do_dl = g.shape[0] > 0
@@ -541,12 +637,21 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
         raise ValueError(f"out has {out.shape[0]} rows, trg has {nt}")
     if nt == 0 or ns == 0 or not (do_sl or do_dl):
         return
-    sorder = rs.sorder
-    cdef double[:, ::1] fc = np.ascontiguousarray(np.asarray(f)[sorder]) if do_sl else None
-    cdef double[:, ::1] nwc = np.ascontiguousarray(np.asarray(nw)[sorder]) if do_dl else None
-    cdef double[:, ::1] gc = np.ascontiguousarray(np.asarray(g)[sorder]) if do_dl else None
+    # the densities in cell order, columns of ld rows (the padding rows 0)
+    cdef Py_ssize_t ld = rs.ld
+    dens_np = np.empty((3 * (do_sl + 2 * do_dl), ld))
+    dens_np[:, ns:] = 0.0
+    cdef double[:, ::1] dens = dens_np
+    cdef long[::1] sorder = rs.sorder
+    cdef Py_ssize_t col = 0
+    if do_sl:
+        _gather_columns(f, sorder, dens, col)
+        col += 3
+    if do_dl:
+        _gather_columns(nw, sorder, dens, col)
+        _gather_columns(g, sorder, dens, col + 3)
     cdef double[:, ::1] ys = rs.ys, xw = rs.xw, xo = rs.xo, src = rs.src
-    cdef long[::1] cstart = rs.cstart, tstart = rs.tstart
+    cdef long[::1] cstart = rs.cstart, tstart = rs.tstart, crun = rs.crun, rstart = rs.rstart, rvi = rs.rvi
     cdef long[::1] torder = rs.torder, src_off = rs.src_off, tcells = rs.tcells, ostart = rs.ostart
     cdef _Cells b
     cdef int j
@@ -554,27 +659,31 @@ def _apply_cells(rs, const double[:, ::1] f, const double[:, ::1] nw, const doub
     for j in range(3):
         b.n[j] = rs.ncell[j]
         b.L[j] = rs.length[j]
+        b.lo[j] = rs.lo[j]
+        b.side[j] = rs.side[j]
         b.mL[j] = rs.length[j] if (rs.periodic and rs.ncell[j] < 2 * SUB + 1) else 0.0
         b.iL[j] = 1.0 / rs.length[j] if b.mL[j] != 0.0 else 0.0
         b.mi_any = b.mi_any or b.mL[j] != 0.0
     b.periodic = rs.periodic
     b.rc2 = rs.rc * rs.rc
+    b.rc2_cull = b.rc2 * (1.0 + 1e-9)
     b.xi = rs.xi
+    b.ld = ld
     b.ys = &ys[0, 0]
+    b.dens = &dens[0, 0]
     b.cstart = &cstart[0]
+    b.crun = &crun[0]
+    b.rstart = &rstart[0]
+    b.rvi = &rvi[0] if rvi.shape[0] > 0 else NULL
     b.tstart = &tstart[0]
     b.xw = &xw[0, 0]
     b.torder = &torder[0]
-    b.fc = &fc[0, 0] if do_sl else NULL
-    b.nwc = &nwc[0, 0] if do_dl else NULL
-    b.gc = &gc[0, 0] if do_dl else NULL
-    cdef long[::1] svi, tvi
-    b.svi = NULL
+    b.do_sl = do_sl
+    b.do_dl = do_dl
+    cdef long[::1] tvi
     b.tvi = NULL
     if rs.skip_own:
-        svi = rs.svi
         tvi = rs.tvi
-        b.svi = &svi[0]
         b.tvi = &tvi[0]
     cdef double* po = &out[0, 0]
     cdef const long* pc = &tcells[0]

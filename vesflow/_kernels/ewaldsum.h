@@ -1,5 +1,5 @@
 /* The real-space sums of the spectral Ewald method (ewald.pyx), written for the vectorizer as
- * pairsum.h: one target against a buffer of candidate sources (structure of arrays), the
+ * pairsum.h: one target against ranges of sources in place (structure of arrays), the
  * pairs outside the cutoff and the coincident ones masked by selects, not branches.
  *
  * With z = xi r, e = exp(-z^2) and E = erfcx(z) = exp(z^2) erfc(z) (so erfc(z) = e E):
@@ -115,26 +115,30 @@ VF_AI double vf_round(double v)
     return (v + shift) - shift;
 }
 
-/* Column layout of a candidate buffer of n sources with leading dimension ld (ld >= n rounded
- * up to a multiple of VF_BLOCK; the rows n .. ld-1 are never used): positions (3 columns:
- * source plus the image shift of its cell), then f (3, single layer), then nw and g (3 + 3,
- * double layer).
- * o[0:3] += (1/(8 pi)) sum_s [inside rc: G^R(r) f_s + T^R(r):(g_s nw_s); r = 0: -G^F(0) f_s],
- * r = x - y_s (minimum image on the axes with mL[a] = L_a != 0, iL[a] = 1/L_a).
- * The sources go in blocks of VF_BLOCK (one AVX-512 vector): a block with no source inside rc
- * is skipped after its distances (the candidates of the 125 neighbour cells are ~2.7 times the
- * pairs inside rc, and neighbouring candidates lie close together: the cells keep the
- * sources' surface order). */
+/* The sources in place: structure-of-arrays columns of leading dimension ld (>= the last
+ * range's end + VF_BLOCK - 1: a block may read up to 7 rows past a range's end, masked, never
+ * summed): positions y (3 columns, cell order) and the densities d: f (3, single layer), then
+ * nw and g (3 + 3, double layer).  A target is summed over a list of ranges of rows, each with
+ * the target's position minus the periodic image shift of the range's cells:
+ * o[0:3] += (1/(8 pi)) sum_ranges sum_{s0 <= s < s1} [inside rc: G^R(r) f_s + T^R(r):(g_s nw_s);
+ * r = 0: -G^F(0) f_s],  r = (x - shift) - y_s (minimum image on the axes with mL[a] = L_a != 0,
+ * iL[a] = 1/L_a).  A range goes in blocks of VF_BLOCK (one AVX-512 vector) from its start: a
+ * block with no source inside rc is skipped after its distances (neighbouring sources lie close
+ * together: a cell keeps each vesicle's sources in surface order). */
 #define VF_BLOCK 8
 
-VF_AI void vf_ewald_real_generic(const double *b, ptrdiff_t n, ptrdiff_t ld, const double *x, double xi,
-                                 double rc2, const double *mL, const double *iL, const int mi, const int sl,
+typedef struct {
+    ptrdiff_t s0, s1;        /* rows s0 .. s1 - 1 */
+    double x[3];             /* the target minus the image shift of these rows' cells */
+} vf_range;
+
+VF_AI void vf_ewald_real_generic(const double *y, const double *d, ptrdiff_t ld, const vf_range *rg, ptrdiff_t nr,
+                                 double xi, double rc2, const double *mL, const double *iL, const int mi, const int sl,
                                  const int dl, double *o)
 {
-    const double x0 = x[0], x1 = x[1], x2 = x[2];
-    const double *y0 = b, *y1 = b + ld, *y2 = b + 2 * ld;
-    const double *f0 = b + 3 * ld, *f1 = b + 4 * ld, *f2 = b + 5 * ld;
-    const double *n0 = b + (sl ? 6 : 3) * ld, *n1 = n0 + ld, *n2 = n0 + 2 * ld;
+    const double *y0 = y, *y1 = y + ld, *y2 = y + 2 * ld;
+    const double *f0 = d, *f1 = d + ld, *f2 = d + 2 * ld;
+    const double *n0 = d + (sl ? 3 : 0) * ld, *n1 = n0 + ld, *n2 = n0 + 2 * ld;
     const double *g0 = n0 + 3 * ld, *g1 = n0 + 4 * ld, *g2 = n0 + 5 * ld;
     const double mL0 = mL[0], mL1 = mL[1], mL2 = mL[2], iL0 = iL[0], iL1 = iL[1], iL2 = iL[2];
     const double c2 = 2.0 * VF_INV_SQPI, gf0 = 4.0 * xi * VF_INV_SQPI, ca = 4.0 * xi * xi * xi * VF_INV_SQPI;
@@ -144,7 +148,10 @@ VF_AI void vf_ewald_real_generic(const double *b, ptrdiff_t n, ptrdiff_t ld, con
         a1[l] = 0.0;
         a2[l] = 0.0;
     }
-    for (ptrdiff_t s0 = 0; s0 < n; s0 += VF_BLOCK) {
+    for (ptrdiff_t k = 0; k < nr; ++k) {
+    const double x0 = rg[k].x[0], x1 = rg[k].x[1], x2 = rg[k].x[2];
+    const ptrdiff_t n = rg[k].s1;
+    for (ptrdiff_t s0 = rg[k].s0; s0 < n; s0 += VF_BLOCK) {
         int any = 0;
 #pragma omp simd reduction(| : any)
         for (int l = 0; l < VF_BLOCK; ++l) {
@@ -188,14 +195,15 @@ VF_AI void vf_ewald_real_generic(const double *b, ptrdiff_t n, ptrdiff_t ld, con
                                               * (ri2 * ri2 * ri)
                                         : 0.0;
                 const double rn = r0 * n0[s] + r1 * n1[s] + r2 * n2[s];
-                const double rg = r0 * g0[s] + r1 * g1[s] + r2 * g2[s];
+                const double rg_ = r0 * g0[s] + r1 * g1[s] + r2 * g2[s];
                 const double gn = g0[s] * n0[s] + g1[s] * n1[s] + g2[s] * n2[s];
-                const double c = A * gn + B * rn * rg;
-                a0[l] += A * (g0[s] * rn + n0[s] * rg) + c * r0;
-                a1[l] += A * (g1[s] * rn + n1[s] * rg) + c * r1;
-                a2[l] += A * (g2[s] * rn + n2[s] * rg) + c * r2;
+                const double c = A * gn + B * rn * rg_;
+                a0[l] += A * (g0[s] * rn + n0[s] * rg_) + c * r0;
+                a1[l] += A * (g1[s] * rn + n1[s] * rg_) + c * r1;
+                a2[l] += A * (g2[s] * rn + n2[s] * rg_) + c * r2;
             }
         }
+    }
     }
     double t0 = 0.0, t1 = 0.0, t2 = 0.0;
     for (int l = 0; l < VF_BLOCK; ++l) {
@@ -210,10 +218,11 @@ VF_AI void vf_ewald_real_generic(const double *b, ptrdiff_t n, ptrdiff_t ld, con
 }
 
 #define VF_REAL_VARIANT(name, MI, SL, DL)                                                                  \
-    VF_CLONES static void name(const double *b, ptrdiff_t n, ptrdiff_t ld, const double *x, double xi,     \
-                               double rc2, const double *mL, const double *iL, double *o)                 \
+    VF_CLONES static void name(const double *y, const double *d, ptrdiff_t ld, const vf_range *rg,          \
+                               ptrdiff_t nr, double xi, double rc2, const double *mL, const double *iL,       \
+                               double *o)                                                                     \
     {                                                                                                      \
-        vf_ewald_real_generic(b, n, ld, x, xi, rc2, mL, iL, MI, SL, DL, o);                                \
+        vf_ewald_real_generic(y, d, ld, rg, nr, xi, rc2, mL, iL, MI, SL, DL, o);                           \
     }
 VF_REAL_VARIANT(vf_ewald_real_s, 0, 1, 0)
 VF_REAL_VARIANT(vf_ewald_real_d, 0, 0, 1)
@@ -228,14 +237,13 @@ VF_REAL_VARIANT(vf_ewald_real_sd_mi, 1, 1, 1)
 #define VF_AVX512 __attribute__((target("avx512f,avx512dq,fma")))
 #define VF_S(c) _mm512_set1_pd(c)
 
-/* exp(x), -700 <= x <= 0, 8 lanes (vf_exp_nonpos) */
+/* exp(x), -700 <= x <= 0, 8 lanes (vf_exp_nonpos's reduction and polynomial; n by roundscale,
+ * 2^n applied by scalef: 2 operations fewer than the shift and exponent-bit tricks) */
 VF_AVX512 static inline __m512d vf_exp8(__m512d x)
 {
-    const __m512d shift = _mm512_set1_pd(6755399441055744.0);
     x = _mm512_max_pd(x, _mm512_set1_pd(-700.0));
-    __m512d kd = _mm512_fmadd_pd(x, _mm512_set1_pd(1.4426950408889634074), shift);
-    const __m512i ki = _mm512_castpd_si512(kd);
-    kd = _mm512_sub_pd(kd, shift);
+    const __m512d kd = _mm512_roundscale_pd(_mm512_mul_pd(x, _mm512_set1_pd(1.4426950408889634074)),
+                                            _MM_FROUND_TO_NEAREST_INT | _MM_FROUND_NO_EXC);
     __m512d s = _mm512_fnmadd_pd(kd, _mm512_set1_pd(6.93147180369123816490e-01), x);
     s = _mm512_fnmadd_pd(kd, _mm512_set1_pd(1.90821492927058770002e-10), s);
     const __m512d s2 = _mm512_mul_pd(s, s);
@@ -250,10 +258,7 @@ VF_AVX512 static inline __m512d vf_exp8(__m512d x)
     pe = _mm512_fmadd_pd(pe, s2, VF_S(0.5));
     po = _mm512_fmadd_pd(po, s2, VF_S(1.0));
     pe = _mm512_fmadd_pd(pe, s2, VF_S(1.0));
-    const __m512d p = _mm512_fmadd_pd(s, po, pe);
-    const __m512i eb = _mm512_slli_epi64(
-        _mm512_add_epi64(ki, _mm512_set1_epi64(-(int64_t)0x4338000000000000LL + 1023)), 52);
-    return _mm512_mul_pd(p, _mm512_castsi512_pd(eb));
+    return _mm512_scalef_pd(_mm512_fmadd_pd(s, po, pe), kd);
 }
 
 /* (1 + z) erfcx(z) as the polynomial in t of vf_erfcx_poly (the same split), 8 lanes */
@@ -300,17 +305,16 @@ VF_AVX512 static inline __m512d vf_rcp8(__m512d a)
     return y;
 }
 
-/* vf_ewald_real_generic with AVX-512 intrinsics: blocks of 8 candidates, a block without a
+/* vf_ewald_real_generic with AVX-512 intrinsics: blocks of 8 sources of each range, a block without a
  * source inside rc skipped, coincident pairs (rare) added lane by lane */
-VF_AVX512 static void vf_ewald_real_avx512(const double *b, ptrdiff_t n, ptrdiff_t ld, const double *x, double xi,
-                                           double rc2, const double *mL, const double *iL, int mi, int sl, int dl,
-                                           double *o)
+VF_AVX512 static void vf_ewald_real_avx512(const double *y, const double *d, ptrdiff_t ld, const vf_range *rg,
+                                           ptrdiff_t nr, double xi, double rc2, const double *mL, const double *iL,
+                                           int mi, int sl, int dl, double *o)
 {
-    const double *y0 = b, *y1 = b + ld, *y2 = b + 2 * ld;
-    const double *f0 = b + 3 * ld, *f1 = b + 4 * ld, *f2 = b + 5 * ld;
-    const double *n0 = b + (sl ? 6 : 3) * ld, *n1 = n0 + ld, *n2 = n0 + 2 * ld;
+    const double *y0 = y, *y1 = y + ld, *y2 = y + 2 * ld;
+    const double *f0 = d, *f1 = d + ld, *f2 = d + 2 * ld;
+    const double *n0 = d + (sl ? 3 : 0) * ld, *n1 = n0 + ld, *n2 = n0 + 2 * ld;
     const double *g0 = n0 + 3 * ld, *g1 = n0 + 4 * ld, *g2 = n0 + 5 * ld;
-    const __m512d X0 = _mm512_set1_pd(x[0]), X1 = _mm512_set1_pd(x[1]), X2 = _mm512_set1_pd(x[2]);
     const __m512d ML0 = _mm512_set1_pd(mL[0]), ML1 = _mm512_set1_pd(mL[1]), ML2 = _mm512_set1_pd(mL[2]);
     const __m512d IL0 = _mm512_set1_pd(iL[0]), IL1 = _mm512_set1_pd(iL[1]), IL2 = _mm512_set1_pd(iL[2]);
     const __m512d RC2 = _mm512_set1_pd(rc2), ZERO = _mm512_setzero_pd(), ONE = _mm512_set1_pd(1.0);
@@ -320,7 +324,10 @@ VF_AVX512 static void vf_ewald_real_avx512(const double *b, ptrdiff_t n, ptrdiff
     const double gf0 = 4.0 * xi * VF_INV_SQPI;
     __m512d a0 = ZERO, a1 = ZERO, a2 = ZERO;
     double z0 = 0.0, z1 = 0.0, z2 = 0.0;
-    for (ptrdiff_t s0 = 0; s0 < n; s0 += 8) {
+    for (ptrdiff_t k = 0; k < nr; ++k) {
+    const __m512d X0 = _mm512_set1_pd(rg[k].x[0]), X1 = _mm512_set1_pd(rg[k].x[1]), X2 = _mm512_set1_pd(rg[k].x[2]);
+    const ptrdiff_t n = rg[k].s1;
+    for (ptrdiff_t s0 = rg[k].s0; s0 < n; s0 += 8) {
         const __mmask8 valid = n - s0 >= 8 ? (__mmask8)0xFF : (__mmask8)((1u << (n - s0)) - 1u);
         __m512d r0 = _mm512_sub_pd(X0, _mm512_loadu_pd(y0 + s0));
         __m512d r1 = _mm512_sub_pd(X1, _mm512_loadu_pd(y1 + s0));
@@ -351,7 +358,7 @@ VF_AVX512 static void vf_ewald_real_avx512(const double *b, ptrdiff_t n, ptrdiff
         const __m512d d = vf_rcp8(_mm512_mul_pd(q1, q2));                  /* 1/((z + K)(1 + z)) */
         const __m512d t = _mm512_mul_pd(_mm512_mul_pd(_mm512_sub_pd(y, KK), q2), d);
         const __m512d E = _mm512_mul_pd(_mm512_mul_pd(vf_erfcx_poly8(t), q1), d);
-        const __m512d e = vf_exp8(_mm512_sub_pd(ZERO, _mm512_mul_pd(y, y)));
+        const __m512d e = vf_exp8(_mm512_fnmadd_pd(y, y, ZERO));
         if (sl) {
             const __m512d F0 = _mm512_loadu_pd(f0 + s0), F1 = _mm512_loadu_pd(f1 + s0), F2 = _mm512_loadu_pd(f2 + s0);
             const __m512d rf = _mm512_fmadd_pd(r2, F2, _mm512_fmadd_pd(r1, F1, _mm512_mul_pd(r0, F0)));
@@ -374,13 +381,14 @@ VF_AVX512 static void vf_ewald_real_avx512(const double *b, ptrdiff_t n, ptrdiff
             const __m512d B = _mm512_maskz_mul_pd(in, _mm512_mul_pd(_mm512_mul_pd(_mm512_set1_pd(-2.0), e),
                                                                      _mm512_fmadd_pd(_mm512_set1_pd(3.0), E, poly)), ri5);
             const __m512d rn = _mm512_fmadd_pd(r2, N2, _mm512_fmadd_pd(r1, N1, _mm512_mul_pd(r0, N0)));
-            const __m512d rg = _mm512_fmadd_pd(r2, G2, _mm512_fmadd_pd(r1, G1, _mm512_mul_pd(r0, G0)));
+            const __m512d rgv = _mm512_fmadd_pd(r2, G2, _mm512_fmadd_pd(r1, G1, _mm512_mul_pd(r0, G0)));
             const __m512d gn = _mm512_fmadd_pd(G2, N2, _mm512_fmadd_pd(G1, N1, _mm512_mul_pd(G0, N0)));
-            const __m512d c = _mm512_fmadd_pd(A, gn, _mm512_mul_pd(_mm512_mul_pd(B, rn), rg));
-            a0 = _mm512_fmadd_pd(A, _mm512_fmadd_pd(G0, rn, _mm512_mul_pd(N0, rg)), _mm512_fmadd_pd(c, r0, a0));
-            a1 = _mm512_fmadd_pd(A, _mm512_fmadd_pd(G1, rn, _mm512_mul_pd(N1, rg)), _mm512_fmadd_pd(c, r1, a1));
-            a2 = _mm512_fmadd_pd(A, _mm512_fmadd_pd(G2, rn, _mm512_mul_pd(N2, rg)), _mm512_fmadd_pd(c, r2, a2));
+            const __m512d c = _mm512_fmadd_pd(A, gn, _mm512_mul_pd(_mm512_mul_pd(B, rn), rgv));
+            a0 = _mm512_fmadd_pd(A, _mm512_fmadd_pd(G0, rn, _mm512_mul_pd(N0, rgv)), _mm512_fmadd_pd(c, r0, a0));
+            a1 = _mm512_fmadd_pd(A, _mm512_fmadd_pd(G1, rn, _mm512_mul_pd(N1, rgv)), _mm512_fmadd_pd(c, r1, a1));
+            a2 = _mm512_fmadd_pd(A, _mm512_fmadd_pd(G2, rn, _mm512_mul_pd(N2, rgv)), _mm512_fmadd_pd(c, r2, a2));
         }
+    }
     }
     const double c = 1.0 / (8.0 * M_PI);
     o[0] += (_mm512_reduce_add_pd(a0) + z0) * c;
@@ -401,25 +409,25 @@ static int vf_real_path_avx512 = 0;
 static int vf_avx512_available(void) { return 0; }
 #endif
 
-/* the real-space sum of one target over a candidate buffer (layout above); sl, dl: layers
- * present; mi: minimum image on the axes with mL != 0 */
-static void vf_ewald_real(const double *b, ptrdiff_t n, ptrdiff_t ld, const double *x, double xi, double rc2,
-                          const double *mL, const double *iL, int mi, int sl, int dl, double *o)
+/* the real-space sum of one target over nr ranges of sources in place (layout above); sl, dl:
+ * layers present; mi: minimum image on the axes with mL != 0 */
+static void vf_ewald_real(const double *y, const double *d, ptrdiff_t ld, const vf_range *rg, ptrdiff_t nr,
+                          double xi, double rc2, const double *mL, const double *iL, int mi, int sl, int dl, double *o)
 {
 #ifdef VF_HAVE_AVX512_PATH
     if (vf_real_path_avx512) {
-        vf_ewald_real_avx512(b, n, ld, x, xi, rc2, mL, iL, mi, sl, dl, o);
+        vf_ewald_real_avx512(y, d, ld, rg, nr, xi, rc2, mL, iL, mi, sl, dl, o);
         return;
     }
 #endif
     if (mi) {
-        if (sl && dl) vf_ewald_real_sd_mi(b, n, ld, x, xi, rc2, mL, iL, o);
-        else if (sl) vf_ewald_real_s_mi(b, n, ld, x, xi, rc2, mL, iL, o);
-        else vf_ewald_real_d_mi(b, n, ld, x, xi, rc2, mL, iL, o);
+        if (sl && dl) vf_ewald_real_sd_mi(y, d, ld, rg, nr, xi, rc2, mL, iL, o);
+        else if (sl) vf_ewald_real_s_mi(y, d, ld, rg, nr, xi, rc2, mL, iL, o);
+        else vf_ewald_real_d_mi(y, d, ld, rg, nr, xi, rc2, mL, iL, o);
     } else {
-        if (sl && dl) vf_ewald_real_sd(b, n, ld, x, xi, rc2, mL, iL, o);
-        else if (sl) vf_ewald_real_s(b, n, ld, x, xi, rc2, mL, iL, o);
-        else vf_ewald_real_d(b, n, ld, x, xi, rc2, mL, iL, o);
+        if (sl && dl) vf_ewald_real_sd(y, d, ld, rg, nr, xi, rc2, mL, iL, o);
+        else if (sl) vf_ewald_real_s(y, d, ld, rg, nr, xi, rc2, mL, iL, o);
+        else vf_ewald_real_d(y, d, ld, rg, nr, xi, rc2, mL, iL, o);
     }
 }
 

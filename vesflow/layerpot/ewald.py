@@ -82,7 +82,7 @@ DUCC0_SIGMA_MIN_EPS = 5e-11
 # cost model of the parameter choice, CPU seconds of one thread, measured with
 # benchmarks/ewald_split.py: real space per (target, source) pair inside the cutoff (the
 # estimate of _pair_fraction; single layer; about the same again for the double layer), per
-# target (the candidate buffers of its cell, the cell traversal) and per own-vesicle pair (the
+# target (the cell traversal, its range list) and per own-vesicle pair (the
 # vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
 # width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid), times
 # (grid / 1e7)^fft_growth (large grids cost more per point: caches); k-space multiplication per
