@@ -444,6 +444,12 @@ def test_ewald_own_auto_takes_smooth_when_the_set_up_pays_over_the_applications(
         assert lp.far_own == want and (lp.own_ops is not None) == (want == "smooth")
         out[want] = lp.apply(f)
     assert rel_err(out["smooth"], out["subtract"]) < 1e-6
+    # E_v in float32 from tol 1e-6 up (LayerPotentials._own_dtype), float64 below
+    lp = LayerPotentials(S, settings=Settings(backend="ewald", fmm_eps=1e-6, period=7.5, ewald_own="smooth"))
+    assert lp.own_ops.single.dtype == np.float32
+    lp64 = LayerPotentials(S, settings=Settings(backend="ewald", fmm_eps=1e-8, period=7.5, ewald_own="smooth"))
+    assert lp64.own_ops.single.dtype == np.float64
+    assert rel_err(lp.apply(f), lp64.apply(f)) < 1e-6
     lp = LayerPotentials(S, settings=Settings(backend="ewald", fmm_eps=1e-6, period=7.5))
     a = lp.own_auto
     assert a["applies"] == APPLIES_PER_SETUP

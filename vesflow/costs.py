@@ -194,7 +194,9 @@ def estimate(scene, opts=None, near=True):
     # "smooth", vesflow.layerpot.own_smooth): as many bytes as the self operators, one more GEMV
     # (-ves_ewald_own auto, the default, may take "subtract" for a run of few GMRES iterations
     # per set-up: no E_v, a dearer far field; the memory counted here is the larger of the two)
-    mem_own = mem_self if backend == "ewald" else 0
+    from .layerpot.evaluator import OWN_SINGLE_TOL
+    own_bytes = 4 if (self_bytes == 4 or (backend == "ewald" and eps >= OWN_SINGLE_TOL)) else 8   # _own_dtype
+    mem_own = mem_self * own_bytes // self_bytes if backend == "ewald" else 0
     t_own = mem_own / BANDWIDTH
     t_near = max(pairs, 0) * NEAR_EVALS * Mq * NEAR_SECONDS_PER_EVAL / max(1, _threads()) * (2 if dl else 1)
     t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
