@@ -233,6 +233,44 @@ VF_PAIRSUM_AVX512 static void vf_stresslet_range_avx512(const double *src, const
     o[2] += _mm512_reduce_add_pd(a2) * c;
 }
 
+/* one block of 8 sources (loaded, 0 beyond `valid`) added to the accumulators a[k] of K targets
+ * X[k] (broadcast): the arithmetic shared by the multi-target sums below, whatever the loads */
+VF_PAIRSUM_AVX512 static inline __attribute__((always_inline)) void vf_stokeslet_acc8(
+    __m512d (*X)[3], int K, __m512d y0, __m512d y1, __m512d y2, __m512d f0, __m512d f1, __m512d f2,
+    __mmask8 valid, __m512d (*a)[3])
+{
+    for (int k = 0; k < K; ++k) {
+        const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                      r2 = _mm512_sub_pd(X[k][2], y2);
+        const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+        const __m512d ri = vf_rsqrt_or_0(rr, valid);
+        const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
+                                         _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
+        a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
+        a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
+        a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
+    }
+}
+
+VF_PAIRSUM_AVX512 static inline __attribute__((always_inline)) void vf_stresslet_acc8(
+    __m512d (*X)[3], int K, __m512d y0, __m512d y1, __m512d y2, __m512d n0, __m512d n1, __m512d n2,
+    __m512d g0, __m512d g1, __m512d g2, __mmask8 valid, __m512d (*a)[3])
+{
+    for (int k = 0; k < K; ++k) {
+        const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
+                      r2 = _mm512_sub_pd(X[k][2], y2);
+        const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
+        const __m512d ri = vf_rsqrt_or_0(rr, valid);
+        const __m512d ri2 = _mm512_mul_pd(ri, ri);
+        const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
+        const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
+        const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
+        a[k][0] = _mm512_fmadd_pd(c, r0, a[k][0]);
+        a[k][1] = _mm512_fmadd_pd(c, r1, a[k][1]);
+        a[k][2] = _mm512_fmadd_pd(c, r2, a[k][2]);
+    }
+}
+
 /* VF_MT targets at once against the same sources: the de-interleaved source vectors are
  * shared, each target's arithmetic is that of vf_*_range_avx512 (the same values, bit for bit) */
 #define VF_MT 4
@@ -251,17 +289,7 @@ VF_PAIRSUM_AVX512 static void vf_stokeslet_multi_avx512(const double *src, const
         __m512d y0, y1, y2, f0, f1, f2;
         vf_load3x8(src, s, m, &y0, &y1, &y2);
         vf_load3x8(f, s, m, &f0, &f1, &f2);
-        for (int k = 0; k < K; ++k) {
-            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
-                          r2 = _mm512_sub_pd(X[k][2], y2);
-            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
-            const __m512d ri = vf_rsqrt_or_0(rr, valid);
-            const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
-                                             _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
-            a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
-            a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
-            a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
-        }
+        vf_stokeslet_acc8(X, K, y0, y1, y2, f0, f1, f2, valid, a);
     }
     const double c = 1.0 / (8.0 * M_PI);
     for (int k = 0; k < K; ++k)
@@ -285,19 +313,7 @@ VF_PAIRSUM_AVX512 static void vf_stresslet_multi_avx512(const double *src, const
         vf_load3x8(src, s, m, &y0, &y1, &y2);
         vf_load3x8(nw, s, m, &n0, &n1, &n2);
         vf_load3x8(g, s, m, &g0, &g1, &g2);
-        for (int k = 0; k < K; ++k) {
-            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
-                          r2 = _mm512_sub_pd(X[k][2], y2);
-            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
-            const __m512d ri = vf_rsqrt_or_0(rr, valid);
-            const __m512d ri2 = _mm512_mul_pd(ri, ri);
-            const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
-            const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
-            const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
-            a[k][0] = _mm512_fmadd_pd(c, r0, a[k][0]);
-            a[k][1] = _mm512_fmadd_pd(c, r1, a[k][1]);
-            a[k][2] = _mm512_fmadd_pd(c, r2, a[k][2]);
-        }
+        vf_stresslet_acc8(X, K, y0, y1, y2, n0, n1, n2, g0, g1, g2, valid, a);
     }
     const double c = -3.0 / (4.0 * M_PI);
     for (int k = 0; k < K; ++k)
@@ -326,17 +342,7 @@ VF_PAIRSUM_AVX512 static VF_INLINE void vf_stokeslet_planar_k(const double *src,
                       y2 = _mm512_maskz_loadu_pd(valid, src + 2 * m + s);
         const __m512d f0 = _mm512_maskz_loadu_pd(valid, f + s), f1 = _mm512_maskz_loadu_pd(valid, f + m + s),
                       f2 = _mm512_maskz_loadu_pd(valid, f + 2 * m + s);
-        for (int k = 0; k < K; ++k) {
-            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
-                          r2 = _mm512_sub_pd(X[k][2], y2);
-            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
-            const __m512d ri = vf_rsqrt_or_0(rr, valid);
-            const __m512d rf = _mm512_mul_pd(_mm512_fmadd_pd(r2, f2, _mm512_fmadd_pd(r1, f1, _mm512_mul_pd(r0, f0))),
-                                             _mm512_mul_pd(_mm512_mul_pd(ri, ri), ri));
-            a[k][0] = _mm512_fmadd_pd(f0, ri, _mm512_fmadd_pd(r0, rf, a[k][0]));
-            a[k][1] = _mm512_fmadd_pd(f1, ri, _mm512_fmadd_pd(r1, rf, a[k][1]));
-            a[k][2] = _mm512_fmadd_pd(f2, ri, _mm512_fmadd_pd(r2, rf, a[k][2]));
-        }
+        vf_stokeslet_acc8(X, K, y0, y1, y2, f0, f1, f2, valid, a);
     }
     const double c = 1.0 / (8.0 * M_PI);
     for (int k = 0; k < K; ++k)
@@ -361,19 +367,7 @@ VF_PAIRSUM_AVX512 static VF_INLINE void vf_stresslet_planar_k(const double *src,
                       n2 = _mm512_maskz_loadu_pd(valid, nw + 2 * m + s);
         const __m512d g0 = _mm512_maskz_loadu_pd(valid, g + s), g1 = _mm512_maskz_loadu_pd(valid, g + m + s),
                       g2 = _mm512_maskz_loadu_pd(valid, g + 2 * m + s);
-        for (int k = 0; k < K; ++k) {
-            const __m512d r0 = _mm512_sub_pd(X[k][0], y0), r1 = _mm512_sub_pd(X[k][1], y1),
-                          r2 = _mm512_sub_pd(X[k][2], y2);
-            const __m512d rr = _mm512_fmadd_pd(r2, r2, _mm512_fmadd_pd(r1, r1, _mm512_mul_pd(r0, r0)));
-            const __m512d ri = vf_rsqrt_or_0(rr, valid);
-            const __m512d ri2 = _mm512_mul_pd(ri, ri);
-            const __m512d rn = _mm512_fmadd_pd(r2, n2, _mm512_fmadd_pd(r1, n1, _mm512_mul_pd(r0, n0)));
-            const __m512d rg = _mm512_fmadd_pd(r2, g2, _mm512_fmadd_pd(r1, g1, _mm512_mul_pd(r0, g0)));
-            const __m512d c = _mm512_mul_pd(_mm512_mul_pd(rn, rg), _mm512_mul_pd(_mm512_mul_pd(ri2, ri2), ri));
-            a[k][0] = _mm512_fmadd_pd(c, r0, a[k][0]);
-            a[k][1] = _mm512_fmadd_pd(c, r1, a[k][1]);
-            a[k][2] = _mm512_fmadd_pd(c, r2, a[k][2]);
-        }
+        vf_stresslet_acc8(X, K, y0, y1, y2, n0, n1, n2, g0, g1, g2, valid, a);
     }
     const double c = -3.0 / (4.0 * M_PI);
     for (int k = 0; k < K; ++k)
