@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from vesflow._kernels import search, stokes
-from vesflow.errors import SceneError
+from vesflow.errors import SettingsError
 from vesflow.layerpot import far
 
 RTOL = 1e-13
@@ -346,9 +346,9 @@ def test_far_fmm_matches_direct(rng):
 def test_backend_choice():
     assert far.choose_backend(100, 100, "auto") == "direct"
     assert far.choose_backend(10, 10, "direct") == "direct"
-    with pytest.raises(SceneError):
+    with pytest.raises(SettingsError):
         far.choose_backend(10, 10, "treecode")
-    with pytest.raises(SceneError):
+    with pytest.raises(SettingsError):
         far.FarField(np.zeros((1, 3)), [0], np.zeros((1, 3)), [0], backend="direct", eps=0.0)
 
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from vesflow import shapes, sph
+from vesflow.layerpot import evaluator
 from vesflow.layerpot.evaluator import LayerPotentials, Settings
 from vesflow.operator import VesicleParams
 from vesflow import parallel
@@ -169,7 +170,7 @@ def test_a_missing_near_zone_surface_changes_the_rows(part, monkeypatch):
     S = Surface(coeffs(), P)
     st = Settings(backend="direct")
     serial = LayerPotentials(S, lam=LAM, settings=st)
-    monkeypatch.setattr(parallel, "Halo", NoHalo)
+    monkeypatch.setattr(evaluator, "Halo", NoHalo)
     dist = LayerPotentials(S, lam=LAM, settings=st, part=part)
     assert dist.halo.n_received == 0 and dist.n_near_pairs_total < serial.n_near_pairs
     rng = np.random.default_rng(1)

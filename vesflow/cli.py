@@ -7,7 +7,9 @@ import sys
 import time
 import traceback
 
-from .errors import NumericalFailure, OptionError, RunError, SceneError, VesflowError
+from . import __version__, options, threads
+from .errors import NumericalFailure, OptionError, RunError, SceneError, SettingsError, VesflowError
+from .solver import check_options, error_reason
 
 USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc and -ves_ options ...]
        vesflow check SCENE.toml [-ves_ and PETSc options]
@@ -25,8 +27,7 @@ def main(argv=None):
     global _T_MAIN, _QUIET
     _T_MAIN = time.perf_counter()
     _QUIET = _launcher_rank() not in (None, 0)   # errors before MPI starts: rank 0 prints them
-    from .threads import early_environment
-    early_environment()                      # before numpy is loaded (vesflow.threads)
+    threads.early_environment()              # before numpy is loaded (vesflow.threads)
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help", "help"):
         print(USAGE)
@@ -38,15 +39,14 @@ def main(argv=None):
         if cmd == "check":
             return cmd_check(rest)
         if cmd == "study":
-            from . import threads
             threads.configure()                  # the runs' thread policy (vesflow.threads)
-            from .study import main as study_main
+            from .study import main as study_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return study_main(rest)
         if cmd == "render":
-            from .render import main as render_main
+            from .render import main as render_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return render_main(rest, prog="vesflow render")
         raise SceneError(f"unknown command {cmd!r}: use run, check, render or study")
-    except SceneError as e:
+    except (SceneError, SettingsError) as e:
         _quiet_petsc_exit()
         if not _QUIET:
             print(f"vesflow: error: {e}", file=sys.stderr)
@@ -64,7 +64,6 @@ def main(argv=None):
         return 130
     except Exception as e:                  # a bug outside a run's steps: one line too
         _quiet_petsc_exit()
-        from .solver import error_reason
         if _wants_traceback(rest):
             traceback.print_exc()
         if not _QUIET:
@@ -82,7 +81,6 @@ def _launcher_rank():
 
 
 def _wants_traceback(args):
-    from . import options
     raw = options.argv_getter(args)("-ves_traceback", bool, False)
     try:
         return raw is not None and options.parse_value("-ves_traceback", raw)
@@ -134,7 +132,6 @@ def expand_options_files(args, origins=None):
 
 
 def _expand(args, where, depth):
-    from . import options
     out, out_where, k = [], [], 0
     while k < len(args):
         a = args[k]
@@ -179,8 +176,8 @@ def _expand(args, where, depth):
 def cmd_check(rest):
     """Validate a scene (with the -ves_ / -ts_ options of a run applied) and PETSc's options, and
     print its effects and the cost estimate."""
-    from . import options, scene as scenemod
-    from .costs import estimate
+    from . import scene as scenemod  # lazy: numpy is loaded after threads.early_environment() (main)
+    from .costs import estimate  # lazy: numpy is loaded after threads.early_environment() (main)
     if not rest or rest[0].startswith("-"):
         raise SceneError("usage: vesflow check SCENE.toml [-ves_ options]")
     origins = []
@@ -190,7 +187,6 @@ def cmd_check(rest):
     sc = options.apply_overrides(scenemod.load_scene(rest[0]), getter)
     opts = options.read_options(getter, sc)
     if any(name not in options.OPTIONS for _, name, _ in options.argv_pairs(args)):   # PETSc's options
-        from .solver import check_options
         _init_petsc(args)
         check_options(args, origins=origins)
     print(sc.summary())
@@ -199,7 +195,7 @@ def cmd_check(rest):
 
 
 def cmd_run(rest):
-    from . import options, scene as scenemod
+    from . import scene as scenemod  # lazy: numpy is loaded after threads.early_environment() (main)
     if any(a in ("-help", "--help", "-h") for a in rest):
         print(USAGE + "\n")
         print(options.help_text())
@@ -211,7 +207,7 @@ def cmd_run(rest):
     options.check_unknown([a for a in cmdline if a.startswith("-ves_")])
     checkpoint = None
     if restart is not None:
-        from .io import read_attributes, read_checkpoint
+        from .io import read_attributes, read_checkpoint  # lazy: numpy is loaded after threads.early_environment() (main)
         if scene_path is not None:
             raise SceneError(f"give a scene or --restart, not both: the scene of {restart} is stored in it")
         prev = read_attributes(restart, what="--restart")
@@ -230,7 +226,6 @@ def cmd_run(rest):
     getter = options.argv_getter(petsc_args)
     sc = options.apply_overrides(sc, getter)
     opts = options.read_options(getter, sc)
-    from . import threads
     threads.configure(opts["blas_threads"])   # before the compiled kernels are loaded
     if restart is not None and (sc.p != int(prev["p"]) or sc.n_vesicles != int(prev["n_vesicles"])):
         raise OptionError(f"-ves_p = {sc.p}: a restart keeps the p = {int(prev['p'])} of {restart}")
@@ -244,16 +239,15 @@ def cmd_run(rest):
             raise SceneError(f"{size} MPI processes for {sc.n_vesicles} vesicles: each rank needs at least one "
                              f"vesicle; run at most {sc.n_vesicles} processes")
         PETSc.COMM_WORLD.barrier()      # every rank has read the --restart file before rank 0 opens it
-    from .solver import check_options
     check_options(petsc_args, origins=origins)      # PETSc's options too, before the output file exists
-    from .io import OutputWriter
-    from .simulation import Run, check_available
+    from .io import OutputWriter  # lazy: numpy is loaded after threads.early_environment() (main)
+    from .simulation import Run, check_available  # lazy: numpy is loaded after threads.early_environment() (main)
     check_available(sc, opts)                # before the output file exists
     ck_every = opts["checkpoint_every"]
     failure = None
     try:
         if not rank0:                            # rank 0 writes the one file
-            from .io import PeerWriter
+            from .io import PeerWriter  # lazy: numpy is loaded after threads.early_environment() (main)
             out = out or (restart if restart is not None else sc.output.file)
             writer = PeerWriter(ck_every, None if checkpoint is None else float(checkpoint["time"]))
         elif restart is not None:
@@ -266,7 +260,6 @@ def cmd_run(rest):
                                          restart_of=restart)
             checkpoint = writer.checkpoint
         else:
-            from . import __version__
             out = out or sc.output.file
             os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
             writer = OutputWriter(out, scene_text=sc.text or scenemod.DEFAULT_SCENE_TEXT,
@@ -302,7 +295,7 @@ def cmd_run(rest):
         if run is not None and writer.last_checkpoint_time != run.t:
             writer.write_checkpoint(run.checkpoint(), force=True)
         raise
-    except SceneError:
+    except (SceneError, SettingsError):
         raise
     except Exception as e:                   # a PETSc error or a bug: one line, the last good state saved
         if opts["traceback"]:
@@ -329,7 +322,6 @@ def _init_petsc(petsc_args):
     """Initialize PETSc with the options; vesflow's own (read above) are marked used, so that
     PETSc's report of unused options (-options_left, at exit) lists only misspelled ones."""
     import petsc4py
-    from . import options
     petsc4py.init([sys.argv[0]] + petsc_args)
     from petsc4py import PETSc
     db = PETSc.Options()
@@ -342,7 +334,6 @@ def _init_petsc(petsc_args):
 def _run_error(e, run, writer, out):
     """RunError for an unexpected exception e during a run: where, why, and the last good state
     saved (or why it could not be)."""
-    from .solver import error_reason
     if run is None:
         return RunError(f"setting up the run: {error_reason(e)}; nothing was computed "
                         "(-ves_traceback shows the full trace)")

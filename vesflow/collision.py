@@ -9,6 +9,8 @@ import numpy as np
 
 from . import sph
 from .layerpot.near import Projection, near_distance, near_pairs_images
+from .parallel import Halo, vesicle_boxes
+from .surface import Surface
 
 
 def signed_gaps(surface, q, period=None, part=None, stats=None):
@@ -29,8 +31,6 @@ def signed_gaps(surface, q, period=None, part=None, stats=None):
         mine = known
         coeffs = surface.coeffs
     else:
-        from .parallel import Halo, vesicle_boxes
-        from .surface import Surface
         mine = np.asarray(part.idx, dtype=np.int64)
         local = Surface(surface.coeffs[mine], p)
         n = len(mine)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
+from .shapes import make_shape
 from .surface import Geometry
 
 
@@ -124,7 +125,6 @@ def sphere_at_centroid(coeffs, p, q=None):
     preconditioner's factors across steps (-ves_pc_lag) then mismatches the stiff locking term
     (measured: GMRES 391 iterations and 2 failed solves, sphere in shear, p = 8); the standard
     parameterization keeps every step's block the same."""
-    from .shapes import make_shape
     q = 2 * p if q is None else q
     geo = Geometry(coeffs, p, q)
     V = geo.integrate(np.einsum("...k,...k->...", geo.X, geo.normal)) / 3.0

@@ -1,5 +1,6 @@
 """Cost model of a scene for `vesflow check` (paper Table 2): memory, and time per GMRES
-iteration and per solve set-up.
+iteration and per solve set-up; and the fixed rules of the numerical choices that depend on the
+problem's size (`decision_rules`, `decisions`).
 
 What is stored (float64, 8 bytes, unless a memory option says float32, 4 bytes):
     self operators        N x (3C)^2            (x 2 with the double layer: S and D;
@@ -14,39 +15,47 @@ upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) 
 
 Time per GMRES iteration: the membrane forces and transforms (per vesicle), the self
 operators (one GEMV each: they are streamed from memory), the far field (direct sum over the
-(N M) x ((N-1) Mq) pairs, the FMM or the Ewald sum, as `-ves_far auto` would choose:
-vesflow.layerpot.far's own model), and the near correction (9 Mq kernel evaluations per near
-pair).  Time per step: the solves of one step (3 with -ves_adapt doubling), each its set-up and
-ITERATIONS_PER_SOLVE GMRES iterations.  The constants
-below were measured on the development machine (2 cores; docs/results.md); expect the
-right order of magnitude, not the digits.
+(N M) x ((N-1) Mq) pairs, the FMM or the Ewald sum, the backend and Ewald parameters the run
+takes: the rules below), and the near correction (9 Mq kernel evaluations per near pair).
+Time per step: the solves of one step (3 with -ves_adapt doubling), each its set-up and
+ITERATIONS_PER_SOLVE GMRES iterations.  The seconds per unit of work are this machine's
+calibration (vesflow.calibration: a file written by benchmarks/calibrate.py, else the
+development machine's figures): expect the right order of magnitude, not the digits.
+
+The choices that change results (far-field backend, Ewald cutoff, own-vesicle mode,
+preconditioner rebuild) are fixed rules of the options and the problem with frozen weights
+(`decision_rules`): they never read the calibration (docs/explanation/calibration.md).
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
-BANDWIDTH = 2e10                 # bytes/s streamed by the batched self GEMV (measured 2-5e10)
-FORCE_S = (8.0e-5, 1.0e-7)       # seconds per vesicle per iteration: a + b p^3 (forces, transforms)
-SELF_SETUP_S = (0.088, 4.0)      # seconds per vesicle to assemble S at p = 16, exponent in p
-PC_SETUP_S = (0.26, 4.0)         # seconds per vesicle to build and factor its 4C block at p = 16
-# (benchmarks/cost_model.py, CPU seconds, p = 6 / 8 / 12 / 16: S 0.0019 / 0.0050 / 0.026 / 0.097,
-# block + LU 0.007 / 0.012 / 0.057 / 0.26-0.36, forces 1.6 / 2.2 / 4.3 / 7.4e-4 per iteration, then
-# 1.3 / 2.4 / 4.8e-4 at p = 8 / 12 / 16 with the derivatives synthesized from the coefficients;
-# before the second wave's transforms: S 0.0035 / - / 0.034 / 0.134, block + LU 0.011 / - / 0.086 / 0.29)
+from . import calibration as calmod, sph
+from ._kernels import search, stokes
+from .layerpot import ewald as ewaldmod, far as farmod
+from .layerpot.evaluator import (APPLIES_PER_SETUP, OWN_GEMV_BYTE, OWN_SETUP_PAIR, OWN_SINGLE_TOL, LayerPotentials,
+                                 Settings)
+from .layerpot.near import near_distance
+from .setup_state import initial_coefficients
+from .surface import Surface
+
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
-# seconds per (near target or line point, source) kernel evaluation of one thread, the near
-# correction in blocks (stokes.*_sum_blocks): 4.24 s for 88189 pairs at p = 16, q = 32
-# (benchmarks/iteration.py --n 512, docs/far_field.md); then 0.50 -> 0.32 s per iteration at
-# N = 64 with the blocks summed by the vectorized range sums of pairsum.h: x 0.64
-NEAR_SECONDS_PER_EVAL = 1.6e-9
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
 # doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
 SOLVES_PER_STEP = {"doubling": 3, "none": 1}       # other schemes (SDC sweeps): counted as 1 solve per sweep pass
 NEAR_COUNT_MAX_POINTS = 1_200_000                 # count the near pairs when N M is below (~8 s CPU at the limit)
+# Weights of the preconditioner's rebuild rule (pc_rebuild_iterations), in seconds of one thread:
+# forces a + b p^3 per vesicle and iteration, bytes per second of the GEMVs, block and LU per
+# vesicle t16 (p / 16)^e, near kernel evaluation; the far field by the backend rule's weights
+# (vesflow.layerpot.far).  Frozen: the development machine's figures (benchmarks/cost_model.py),
+# part of the method, so that the rebuilds, and with them the iterates, are the same on every machine.
+REBUILD_WEIGHTS = {"forces_s": (8.0e-5, 1.0e-7), "bytes_per_s": 2e10, "pc_setup_s": (0.26, 4.0),
+                   "near_s_per_eval": 1.4e-9}
 
 
 @dataclass(frozen=True)
@@ -79,6 +88,8 @@ class Estimate:
     threads: int = 1
     mem_own: int = 0             # the Ewald far field's own smooth operators E_v (as many as the self operators)
     t_own: float = 0.0           # their GEMV per iteration
+    calibration: str = "defaults"  # where the seconds per unit of work came from (vesflow.calibration)
+    decisions: dict = None       # the rules' choices at t = 0 (`decisions`)
 
     @property
     def t_step(self):
@@ -105,7 +116,7 @@ class Estimate:
             f"factorization ~ {self.t_pc:.2f} s (every -ves_pc_lag solves)",
             f"         per time step ~ {self.t_step:.4g} s: {self.solves_per_step} solve(s) x (set-up + "
             f"{self.iterations_per_solve} GMRES iterations, an assumed typical count); {self.threads} thread(s), "
-            f"from the cost model (vesflow/costs.py)",
+            f"calibration: {self.calibration}",
             f"memory   ~ {mib(self.memory)}: self operators {mib(self.mem_self)} "
             f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''}"
             f"{f'; the Ewald own smooth operators as many again, {mib(self.mem_own)}' if self.mem_own else ''}), block "
@@ -113,13 +124,13 @@ class Estimate:
             f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x {_entry(self.pc_bytes)}, up to 3: {mib(self.mem_pc_max)}), "
             f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
             self._fits(),
-        ])
+        ] + ([f"choices  {describe_decisions(self.decisions)} (fixed rules, the same on every machine)"]
+             if self.decisions else []))
 
     def _fits(self):
         """Whether the memory fits this machine's RAM (the minimum: one cached preconditioner)."""
         least = self.memory - self.mem_pc_max + self.mem_pc
         try:
-            import os
             ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
         except (ValueError, OSError, AttributeError):
             return "machine  RAM unknown"
@@ -134,15 +145,15 @@ def _entry(nbytes):
     return "8 B" if nbytes == 8 else f"{nbytes} B (float32)"
 
 
-def _near_pairs(scene, p, q, near_factor):
-    """Near (p-grid point, other vesicle) pairs of the initial configuration."""
-    from . import sph
-    from ._kernels import search
-    from .layerpot.near import near_distance
-    from .simulation import initial_coefficients
-    from .surface import Surface
+def _state(scene, p, q):
+    """The initial surface, its q-grid geometry and its p-grid points (N, M, 3)."""
     S = Surface(initial_coefficients(scene), p)
-    N = scene.n_vesicles
+    return S, S.geometry(q), S.points()
+
+
+def _near_pairs(S, p, q, near_factor):
+    """Near (p-grid point, other vesicle) pairs of the initial configuration."""
+    N = S.n_vesicles
     trg = np.ascontiguousarray(S.points().reshape(-1, 3))
     src = np.ascontiguousarray(S.points(q).reshape(-1, 3))
     trg_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p).npts)
@@ -152,11 +163,102 @@ def _near_pairs(scene, p, q, near_factor):
     return int(np.asarray(pairs).reshape(-1, 2).shape[0])
 
 
-def estimate(scene, opts=None, near=True):
+def _settings(scene, o):
+    """The layer potentials' Settings a run of these options takes (vesflow.simulation.Run)."""
+    return Settings(q_self=o.get("q_self"), q_far=o.get("q_near"), near_factor=float(o.get("near_factor") or 1.0),
+                    backend=o.get("far") or "auto", fmm_eps=float(o.get("far_tol") or farmod.DEFAULT_EPS),
+                    period=scene.periodic_length or None, self_precision=o.get("self_precision") or "double",
+                    ewald_own=o.get("ewald_own") or "auto")
+
+
+class _OwnModeInputs:
+    """What the layer potentials' own-vesicle rule reads (LayerPotentials._far_own_mode, the one
+    implementation of the rule), for a surface at t = 0 without the set-up of its operators."""
+
+    _far_own_mode = LayerPotentials._far_own_mode
+    _own_auto = LayerPotentials._own_auto
+    _own_dtype = LayerPotentials._own_dtype
+
+    def __init__(self, surface, settings, q, want_double):
+        self.settings, self.local, self.part, self.p = settings, surface, None, surface.p
+        self.N = self.N_total = surface.n_vesicles
+        self.Tq, self.Tp = sph.transform(surface.p, q), sph.transform(surface.p)
+        self.want_double = bool(want_double)
+        self.own_auto = None
+
+
+def decisions(scene, opts=None, state=None, near_pairs=None):
+    """The numerical choices a run of this scene and these options makes at its first set-up, by
+    the fixed rules (`decision_rules`; no calibration is read): far-field backend, Ewald
+    parameters (xi, rc, modes), own-vesicle mode, and the preconditioner rebuild's price in GMRES
+    iterations.  A JSON-ready dict.  state: (surface, q-grid geometry, p-grid points) of t = 0;
+    near_pairs: their count (default: counted)."""
+    o = dict(opts) if opts is not None else {}
+    p, N = scene.p, scene.n_vesicles
+    st = _settings(scene, o)
+    q = int(st.q_far or 2 * p)
+    S, gq, pts = state if state is not None else _state(scene, p, q)
+    dl = bool(scene.effects().double_layer)
+    out = {"far_backend": "none", "ewald_own": None, "ewald": None}
+    backend = "direct"
+    if N > 1 or st.period:
+        own = _OwnModeInputs(S, st, q, dl)
+        mode = own._far_own_mode(gq)
+        nsrc, ntrg = N * own.Tq.npts, N * own.Tp.npts
+        points = np.concatenate([gq.X.reshape(-1, 3), pts.reshape(-1, 3)])
+        backend, params = farmod.resolve_backend(st.backend, st.fmm_eps, st.period, nsrc, ntrg, points,
+                                                 N * own.Tq.npts * own.Tp.npts, dl,
+                                                 own._own_skip if mode == "smooth" else None)
+        out["far_backend"] = backend
+        if backend == "ewald":
+            out["ewald_own"] = mode
+            out["ewald"] = {"xi": params.xi, "rc": params.rc, "modes": list(params.modes)}
+    if near_pairs is None:
+        near_pairs = _near_pairs(S, p, q, st.near_factor) if N > 1 else 0
+    out["pc_rebuild_iterations"] = float(pc_rebuild_iterations(N, p, q, dl, near_pairs, backend, st.fmm_eps))
+    return out
+
+
+def describe_decisions(d):
+    """One line of `decisions`."""
+    far = d["far_backend"]
+    if d.get("ewald"):
+        e = d["ewald"]
+        far += f" (rc = {e['rc']:.4g}, xi = {e['xi']:.4g}, modes {'x'.join(map(str, e['modes']))}, own vesicle {d['ewald_own']})"
+    return f"far field {far}; preconditioner rebuilt after ~{d['pc_rebuild_iterations']:.0f} excess GMRES iterations"
+
+
+def decision_rules():
+    """The fixed rules of the choices that change results, with their frozen weights (JSON-ready;
+    recorded in a run file's attributes as `decision_rules`)."""
+    return {
+        "far_backend": {"rule": "-ves_far auto: the least cost, one thread, of direct (per pair), fmm (per point, "
+                                "interpolated in log eps) and ewald (ewald_cutoff's weights, at its cutoff); "
+                                "periodic: ewald",
+                        "direct_s_per_pair": farmod.DIRECT_SECONDS_PER_PAIR,
+                        "fmm_s_per_point": [[e, t] for e, t in sorted(farmod.FMM_SECONDS_PER_POINT.items())]},
+        "ewald_cutoff": {"rule": "the real-space cutoff rc of 48 log-spaced in [max(0.5 spacing, 1e-3 rc_max), rc_max] "
+                                 "of least cost by these weights (vesflow.layerpot.ewald.choose_params); xi and the grid "
+                                 "follow from rc and -ves_far_tol",
+                         "weights": dict(ewaldmod.COST)},
+        "ewald_own": {"rule": "-ves_ewald_own auto: smooth when (Ewald cost without the own pairs less the E_v GEMV) "
+                              "x applies_per_setup exceeds the E_v set-up, else subtract; subtract when a vesicle's "
+                              "extent plus 0.49 L reaches the period L",
+                      "applies_per_setup": APPLIES_PER_SETUP, "own_setup_s_per_pair": OWN_SETUP_PAIR,
+                      "own_gemv_s_per_byte": OWN_GEMV_BYTE},
+        "pc_rebuild": {"rule": "rebuild the block preconditioner once the iterations beyond the first solve's, summed "
+                               "since the last rebuild, reach its price in iterations: block and LU time over one "
+                               "GMRES iteration's time, both by these weights (one thread)",
+                       **{k: list(v) if isinstance(v, tuple) else v for k, v in REBUILD_WEIGHTS.items()}},
+    }
+
+
+def estimate(scene, opts=None, near=True, calibration=None):
     """Estimate of a scene's costs (an Estimate; str() gives the lines `vesflow check` prints).
     opts: resolved options (vesflow.options.read_options) for q, the far-field backend and its
-    accuracy; near: count the near pairs of the initial configuration (N > 1, N M <= 1.2e6)."""
-    from .layerpot import far as farmod
+    accuracy; near: count the near pairs of the initial configuration (N > 1, N M <= 1.2e6);
+    calibration: the seconds per unit of work (default: vesflow.calibration.load(), this machine's)."""
+    cal = calibration if calibration is not None else calmod.load()
     p, N = scene.p, scene.n_vesicles
     o = dict(opts) if opts is not None else {}
     q = int(o.get("q_near") or 2 * p)
@@ -170,82 +272,69 @@ def estimate(scene, opts=None, near=True):
     mem_pc = N * (4 * C) ** 2 * pc_bytes
     mem_pc_parts = N * ((4 * C) ** 2 + (3 * C) ** 2) * pc_bytes
     mem_sources = N * Mq * 7 * 8 if N > 1 else 0
+    state = _state(scene, p, q) if N > 1 or eff.periodic else None
     pairs = 0
     if N > 1 and near:
-        pairs = (_near_pairs(scene, p, q, float(o.get("near_factor") or 1.0)) if N * M <= NEAR_COUNT_MAX_POINTS
-                 else -1)
+        pairs = _near_pairs(state[0], p, q, float(o.get("near_factor") or 1.0)) if N * M <= NEAR_COUNT_MAX_POINTS else -1
     mem_near = max(pairs, 0) * (C + 3 * 8 + 9) * 8
-    t_forces = N * (FORCE_S[0] + FORCE_S[1] * p ** 3)
-    t_self = mem_self / BANDWIDTH
-    backend, t_far = "none", 0.0
+    threads = _threads()
+    t_forces = N * (cal.forces_s[0] + cal.forces_s[1] * p ** 3)
+    t_self = mem_self / cal.self_gemv_bytes_per_s
+    chosen = None
+    backend, t_far, eps = "none", 0.0, float(o.get("far_tol") or farmod.DEFAULT_EPS)
     if N > 1 or eff.periodic:          # periodic: a single vesicle sees its images
+        chosen = decisions(scene, o, state=state, near_pairs=max(pairs, 0))
+        backend = chosen["far_backend"]
         nsrc, ntrg = N * Mq, N * M
-        eps = float(o.get("far_tol") or farmod.DEFAULT_EPS)
-        t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, eps)
+        t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, eps, threads, cal.direct_s_per_pair,
+                                                   dict(cal.fmm_s_per_point))
         t_direct *= (N - 1) / N                      # a vesicle's own sources are left out
-        t_ewald = _ewald_seconds(scene, p, nsrc, ntrg, N * M * Mq, eps) if farmod._have_ewald() else None
-        want = o.get("far", "auto")
-        if want == "auto":
-            backend = farmod.choose_backend(nsrc, ntrg, "auto", eps, t_ewald, periodic=bool(eff.periodic))
-        else:
-            backend = want
-        t_far = {"fmm": t_fmm, "ewald": t_ewald}.get(backend, t_direct) or 0.0
-    # ewald: the own vesicle's smooth share removed by per-vesicle operators E_v (Settings.ewald_own
-    # "smooth", vesflow.layerpot.own_smooth): as many bytes as the self operators, one more GEMV
-    # (-ves_ewald_own auto, the default, may take "subtract" for a run of few GMRES iterations
-    # per set-up: no E_v, a dearer far field; the memory counted here is the larger of the two)
-    from .layerpot.evaluator import OWN_SINGLE_TOL
-    own_bytes = 4 if (self_bytes == 4 or (backend == "ewald" and eps >= OWN_SINGLE_TOL)) else 8   # _own_dtype
-    mem_own = mem_self * own_bytes // self_bytes if backend == "ewald" else 0
-    t_own = mem_own / BANDWIDTH
-    t_near = max(pairs, 0) * NEAR_EVALS * Mq * NEAR_SECONDS_PER_EVAL / max(1, _threads()) * (2 if dl else 1)
-    t_setup = N * SELF_SETUP_S[0] * (p / 16) ** SELF_SETUP_S[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
-    t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
+        t_far = {"fmm": t_fmm, "direct": t_direct}.get(backend, 0.0)
+        if backend == "ewald":
+            S, gq, pts = state
+            points = np.concatenate([gq.X.reshape(-1, 3), pts.reshape(-1, 3)])
+            smooth = chosen["ewald_own"] == "smooth"
+            own_skip = (Mq, float(gq.dA.sum()) / N) if smooth else None
+            t_far = farmod.predicted_ewald(points, nsrc, ntrg, 0 if smooth else N * M * Mq, eps, threads,
+                                           scene.periodic_length or None, dl, own_skip, cost=cal.ewald)[0]
+    # ewald, own vesicle "smooth": its smooth share removed by per-vesicle operators E_v
+    # (vesflow.layerpot.own_smooth): as many entries as the self operators, one more GEMV
+    smooth_own = backend == "ewald" and chosen["ewald_own"] == "smooth"
+    own_bytes = 4 if (self_bytes == 4 or eps >= OWN_SINGLE_TOL) else 8   # LayerPotentials._own_dtype
+    mem_own = mem_self * own_bytes // self_bytes if smooth_own else 0
+    t_own = mem_own / cal.self_gemv_bytes_per_s
+    t_near = max(pairs, 0) * NEAR_EVALS * Mq * cal.near_s_per_eval / max(1, threads) * (2 if dl else 1)
+    t_setup = N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
+    t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
     return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
                     mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_pc_parts=mem_pc_parts, self_bytes=self_bytes,
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
-                    solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=_threads(),
-                    mem_own=mem_own, t_own=t_own)
-
-
-def _ewald_seconds(scene, p, nsrc, ntrg, own_pairs, eps):
-    """Predicted seconds of the Ewald far field (vesflow.layerpot.far.predicted_ewald) over the
-    box of the initial p-grid points (the period cell when periodic)."""
-    from .layerpot import far as farmod
-    from .simulation import initial_coefficients
-    from .surface import Surface
-    pts = Surface(initial_coefficients(scene), p).points().reshape(-1, 3)
-    period = scene.domain.period if scene.domain is not None else None
-    n = scene.n_vesicles
-    area = float(Surface(initial_coefficients(scene), p).area().mean()) if n else 0.0
-    own_skip = (nsrc // max(n, 1), area)          # Settings.ewald_own "smooth": no own real-space pairs
-    return farmod.predicted_ewald(pts, nsrc, ntrg, own_pairs, eps, period=period, own_skip=own_skip)[0]
+                    solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=threads,
+                    mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen)
 
 
 def _threads():
-    try:
-        from ._kernels import stokes
-        return int(stokes.max_threads())
-    except Exception:
-        return 1
+    return max(1, int(stokes.max_threads()))
 
 
 def pc_rebuild_iterations(n_vesicles, p, q, double_layer=False, near_pairs=0, far_backend="direct",
                           far_eps=1e-8):
     """The block preconditioner's rebuild (blocks and LU) in GMRES iterations of the same
-    system, by the model above: what vesflow.precond's reuse rule weighs the aging blocks'
-    extra iterations against.  A model, not a clock, so that the rebuilds (and with them the
-    iterates) are the same in every run of the same input, restarts included."""
-    from .layerpot import far as farmod
+    system, by the rule's frozen weights (REBUILD_WEIGHTS; the far field by the backend rule's,
+    vesflow.layerpot.far): what vesflow.precond's reuse rule weighs the aging blocks' extra
+    iterations against.  Weights, not a clock nor this machine's calibration, so that the
+    rebuilds (and with them the iterates) are the same in every run of the same input, on any
+    machine, restarts included."""
+    w = REBUILD_WEIGHTS
     N, C = n_vesicles, (p + 1) ** 2 - 1
     M, Mq = 2 * p * (p + 1), 2 * q * (q + 1)
     n_ops = 2 if double_layer else 1
-    t_it = N * (FORCE_S[0] + FORCE_S[1] * p ** 3) + N * (n_ops * (3 * C) ** 2 + (4 * C) ** 2) * 8 / BANDWIDTH
+    t_it = N * (w["forces_s"][0] + w["forces_s"][1] * p ** 3) + N * (n_ops * (3 * C) ** 2 + (4 * C) ** 2) * 8 / w["bytes_per_s"]
     if N > 1:
         t_direct, t_fmm = farmod.predicted_seconds(N * Mq, N * M, far_eps, threads=1)
         t_it += t_fmm if far_backend == "fmm" else t_direct * (N - 1) / N
-        t_it += near_pairs * NEAR_EVALS * Mq * farmod.DIRECT_SECONDS_PER_PAIR * n_ops
-    t_pc = N * PC_SETUP_S[0] * (p / 16) ** PC_SETUP_S[1]
+        t_it += near_pairs * NEAR_EVALS * Mq * w["near_s_per_eval"] * n_ops
+    t_pc = N * w["pc_setup_s"][0] * (p / 16) ** w["pc_setup_s"][1]
     return t_pc / t_it

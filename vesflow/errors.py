@@ -17,6 +17,14 @@ class OptionError(SceneError):
     """A bad command-line option value."""
 
 
+class SettingsError(VesflowError):
+    """A numerical setting the layer potentials cannot honour (a far-field backend, accuracy or
+    period; a grid that does not fit the memory).  Raised below the scene layer, which knows no
+    scene key; the CLI prints it on one line and exits 2, as a SceneError."""
+
+    exit_status = 2
+
+
 class ConvergenceError(VesflowError):
     """A KSP solve failed: carries PETSc's reason and the iteration count."""
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import forces, sph
+from .surface import Surface
 
 
 class VesicleParams:
@@ -198,7 +199,6 @@ class StepOperator:
 
     def self_block_by_columns(self, v, chunk=256):
         """self_block by applying the operator pieces to unit vectors (the reference it is tested against)."""
-        from .surface import Surface
         sub = Surface(self.surface.coeffs[v:v + 1], self.p)
         geo = sub.geometry(self.q_force)
         C, n = self.C, self.block

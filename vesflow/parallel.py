@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import SceneError
+
 MORTON_BITS = 10      # per coordinate: a 1024^3 grid over the centroids' bounding box
 
 
@@ -257,7 +259,6 @@ def make_partition(centroids, points_per_vesicle=None, comm=None):
         return None
     c = np.asarray(centroids, dtype=float).reshape(-1, 3)
     if len(c) < comm.Get_size():
-        from .errors import SceneError
         raise SceneError(f"{comm.Get_size()} MPI processes for {len(c)} vesicles: each rank needs at least one "
                          f"vesicle; run at most {len(c)} processes")
     order = morton_order(c)

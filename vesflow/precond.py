@@ -33,7 +33,12 @@ import contextlib
 import numpy as np
 from scipy.linalg import lu_factor, lu_solve
 
-from .operator import block_at
+from .costs import pc_rebuild_iterations
+from .layerpot.singular import SelfOperators
+from .operator import StepOperator, VesicleParams, block_at
+from .options import parse_value
+from .shapes import make_shape
+from .surface import Surface
 from .threads import map_vesicles
 
 REFRESH_FACTOR, REFRESH_SLACK = 3.0, 5
@@ -60,7 +65,6 @@ class _PerVesicle:
         """Storage and solves of the parts and factors (float64, or float32 with -ves_pc_precision single)."""
         if self.precision is None:
             from petsc4py import PETSc
-            from .options import parse_value
             self.precision = parse_value("-ves_pc_precision", PETSc.Options().getString("ves_pc_precision", "double"))
         return PC_DTYPES[self.precision]
 
@@ -122,7 +126,6 @@ class _PerVesicle:
     def rebuild_cost(op):
         """A rebuild in GMRES iterations of this system (costs.pc_rebuild_iterations), for the
         whole system (all ranks' vesicles and near pairs): every rank, and one process, decide alike."""
-        from .costs import pc_rebuild_iterations
         lp = op.lp
         far = getattr(getattr(lp, "far", None), "backend", "direct")
         return pc_rebuild_iterations(getattr(lp, "N_total", op.N), op.p, getattr(lp, "q_far", 2 * op.p),
@@ -242,10 +245,6 @@ class SphereSpectral(_PerVesicle):
         """The blocks depend on the radii only: nothing goes stale with the shapes."""
 
     def block_parts(self, op):
-        from .layerpot.singular import SelfOperators
-        from .operator import StepOperator, VesicleParams
-        from .shapes import make_shape
-        from .surface import Surface
         radii = op.surface.effective_radius()
         out = []
         for v in range(op.N):

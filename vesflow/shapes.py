@@ -19,8 +19,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from . import sph
-from .scene.geometry import EVANS_FUNG, euler_zyz, spheroid_axes  # noqa: F401 (euler_zyz re-exported)
-from .scene.model import SHAPES
+from .scene.geometry import EVANS_FUNG, SHAPES, euler_zyz, spheroid_axes  # noqa: F401 (euler_zyz re-exported)
 from .surface import Surface
 
 FIT_P = 8   # every shape is exact at degree <= 5; fits are done at this degree and resampled

@@ -13,27 +13,18 @@ import time as _time
 
 import numpy as np
 
-from . import collision, sph
+from . import collision, repulsion, sph
 from .correction import correct_area_volume, restore_spheres
 from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
 from .layerpot.evaluator import Settings
 from .operator import VesicleParams
-from .shapes import make_shape
-from .stepper import Physics, Stepper
+from .parallel import make_partition, world_size
+from .sdc import SDC, collocation_order
+from .setup_state import initial_coefficients
+from .stepper import Physics, Solution, Stepper
 from .surface import Surface
 from .timing import Timers
-
-
-def initial_coefficients(scene):
-    """Position coefficients (N, 3, C) of the scene's vesicles."""
-    p = scene.p
-    out = np.empty((scene.n_vesicles, 3, sph.n_coeffs(p)))
-    for k, v in enumerate(scene.vesicles):
-        out[k] = make_shape(v.shape, p, radius=v.radius, center=v.center, rotation=v.rotation,
-                            reduced_volume=v.reduced_volume if v.shape in ("oblate", "prolate", "biconcave") else None,
-                            axes=v.axes)
-    return out
 
 
 def vesicle_params(scene):
@@ -81,7 +72,6 @@ class Run:
         if period is not None:
             coeffs, moved = wrap_into_cell(coeffs, self.p, period)
             self.image += moved
-        from .parallel import make_partition, world_size
         # the vesicles over the MPI ranks (None with one process: nothing gathered)
         self.part = make_partition(Surface(coeffs, self.p).centroid()) if world_size() > 1 else None
         self.stepper = Stepper(coeffs, self.p, params, phys, settings, coupling=opts["coupling"],
@@ -89,8 +79,6 @@ class Run:
         self.sdc = None                   # -ts_type sdc: the SDC steps of the stepper
         self.err_order = 1                # k of the step update dt (beta tol dt / err)^(1/k)
         if opts["ts_type"] == "sdc":
-            from .sdc import SDC
-            from .sdc import collocation_order
             self.sdc = SDC(self.stepper, opts["ts_sdc_nodes"], opts["ts_sdc_sweeps"], opts["ts_sdc_quadrature"])
             K, top = opts["ts_sdc_sweeps"], collocation_order(opts["ts_sdc_nodes"], opts["ts_sdc_quadrature"])
             # sweeps: d_K, the local error of K - 1 sweeps, dt^(K + 1); contraction: the estimate of
@@ -98,10 +86,9 @@ class Run:
             self.err_order = {"doubling": min(K + 1, top), "sweeps": min(K, top),
                               "contraction": min(K + 1, top) if K >= 2 else 1}.get(opts["adapt"], 1)
         if phys.repulsion_radius > 0:
-            from .repulsion import repulsion_force
             R = phys.repulsion_radius
-            self.stepper.extra_force = lambda surf, geo: repulsion_force(surf, self.stepper.lp_current, R,
-                                                                         self.stepper.q_force)
+            self.stepper.extra_force = lambda surf, geo: repulsion.repulsion_force(surf, self.stepper.lp_current, R,
+                                                                                   self.stepper.q_force)
         self.horizon = scene.time.horizon
         self.every = scene.output.every
         self.progress, self.monitor, self.log = progress, monitor, log
@@ -128,7 +115,6 @@ class Run:
             self.next_frame = next_output_time(self.t, self.every)
             self.sigma, self.u = np.asarray(checkpoint["sigma"]), np.asarray(checkpoint["u"])
             if int(checkpoint["has_last"]):
-                from .stepper import Solution
                 self.stepper.last = Solution(self.u.copy(), self.sigma.copy(), 0, 0)
             self.stepper.time = self.t
             if "q_self" in checkpoint and opts["quad_tol"] > 0:     # the adapted degrees
@@ -538,8 +524,7 @@ def _step_q(q, err, tol, lo, hi):
 
 
 def _is_peer(writer):
-    from .io.peer import PeerWriter
-    return isinstance(writer, PeerWriter)
+    return bool(getattr(writer, "is_peer", False))
 
 
 def _rows(a, idx):

@@ -16,6 +16,7 @@ import re
 import sys
 
 from .errors import OptionError
+from .options import argv_pairs
 
 RTOL, MAX_IT = 1e-8, 1000          # vesflow's defaults; -ksp_rtol / -ksp_max_it override them
 
@@ -121,7 +122,6 @@ def check_options(argv=(), prefix=None, origins=None):
     if isinstance(err, OptionError):
         raise err
     from petsc4py import PETSc
-    from .options import argv_pairs
     pairs = [(i, name, value) for i, name, value in argv_pairs(argv) if not name.startswith("-ves_")]
     db = PETSc.Options()
     for _, name, _ in pairs:

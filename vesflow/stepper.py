@@ -19,6 +19,7 @@ from .errors import ConvergenceError
 from .flows import background_velocity
 from .layerpot.evaluator import LayerPotentials, Settings
 from .operator import StepOperator
+from .precond import PC_DTYPES, BlockJacobi
 from .solver import configure_ksp
 from .surface import Surface
 from .threads import adapt_openmp
@@ -226,7 +227,6 @@ class Stepper:
         left-preconditioned GMRES with a float32 PC leaves the solution 1.3e-7 (relative) from
         double's at any rtol, fgmres within 3e-14 at rtol 1e-8 in the same iterations (one
         solve of the accuracy-cost pair, p = 12; docs/parallel.md)."""
-        from .precond import PC_DTYPES
         if self.pc_precision is not None:
             dtype = PC_DTYPES[self.pc_precision]
         else:                                # a context of another kind (tests): its own precision, or double
@@ -346,7 +346,6 @@ def residual_modes(op, r, bnorm, x=None):
 
 
 def _default_pc(precision=None):
-    from .precond import BlockJacobi
     return BlockJacobi(precision=precision)
 
 

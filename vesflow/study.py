@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import collision, options as optmod, scene as scenemod
-from .errors import NumericalFailure, VesflowError
+from .errors import NumericalFailure, SceneError, VesflowError
+from .simulation import Run
 from .surface import Surface
 
 
@@ -119,7 +120,6 @@ def case_scene(scene, case, horizon=None):
 
 def run_case(scene, case, horizon=None, extra_options=None):
     """Run one case; returns a dict of the measured figures (status 'ok' or 'failed: ...')."""
-    from .simulation import Run
     sc = case_scene(scene, case, horizon)
     given = dict(scheme_options(case.scheme), **{"-ves_adapt_tol": case.tol})
     given.update(extra_options or {})
@@ -334,7 +334,6 @@ def accuracy_cost(scene_path, out, quick=False, reference=None, cases=None, fres
 
 def parse_case(text):
     """'p,tol[,R[,scheme]]' -> Case (one-line SceneError on bad input)."""
-    from .errors import SceneError
     items = text.split(",")
     scheme = items.pop() if len(items) == 4 else "euler"
     try:
@@ -356,7 +355,6 @@ USAGE = ("usage: vesflow study accuracy-cost [SCENE.toml] [--out DIR] [--quick] 
 
 def main(argv):
     """`vesflow study accuracy-cost ...` (returns the exit status)."""
-    from .errors import SceneError
     if not argv or argv[0] in ("-h", "--help", "-help"):
         print(USAGE)
         return 0 if argv else 2

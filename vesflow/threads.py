@@ -93,7 +93,7 @@ def adapt_openmp(pairs=None):
     one thread when the far field has fewer than MIN_PAIRS_OPENMP source-target pairs (the
     kernels' loops are then too short to pay for waking a thread: two vesicles at p = 6, 1e5
     pairs, ran 7% slower on 2 threads of an idle machine)."""
-    from ._kernels import series
+    from ._kernels import series  # lazy: libgomp reads the OMP_ variables configure() sets when the kernels load
     n = min(openmp_threads(), free_cores())
     if pairs is not None and pairs < MIN_PAIRS_OPENMP:
         n = 1
@@ -143,7 +143,7 @@ def map_vesicles(fn, items, p=None):
         if pool is not None:
             pool.shutdown(wait=False)
         pool = _state["pool"] = ThreadPoolExecutor(max_workers=n, thread_name_prefix=_POOL_PREFIX)
-    from ._kernels import series
+    from ._kernels import series  # lazy: libgomp reads the OMP_ variables configure() sets when the kernels load
     per_worker = max(1, openmp_threads() // n)
 
     def with_shared_openmp(i):     # no nested teams (2 x 2 threads on 2 cores): the OpenMP

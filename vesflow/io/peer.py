@@ -14,6 +14,8 @@ from .writer import OutputWriter
 class PeerWriter:
     """Run skips forming a frame's fields for it."""
 
+    is_peer = True
+
     def __init__(self, checkpoint_every=None, last_checkpoint_time=None):
         self.checkpoint_every = None if checkpoint_every is None else float(checkpoint_every)
         self.last_checkpoint_time = None if last_checkpoint_time is None else float(last_checkpoint_time)

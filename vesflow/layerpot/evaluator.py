@@ -20,8 +20,11 @@ import numpy as np
 
 from .. import sph
 from .._kernels import stokes
+from ..parallel import Halo, vesicle_boxes
+from ..surface import Surface
 from . import near as nearmod
-from .far import FarField, resolve_backend
+from .ewald import OWN_MODES, own_extent_ok
+from .far import FarField, predicted_ewald, resolve_backend
 from .own_smooth import OwnSmoothOperators
 from .singular import SelfOperators
 
@@ -50,7 +53,6 @@ class Settings:
     def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
                  near_blend=0.0, self_precision="double", ewald_own="auto", applies_per_setup=APPLIES_PER_SETUP):
         self.q_self, self.q_far = q_self, q_far
-        from .ewald import OWN_MODES
         if ewald_own not in OWN_MODES + ("auto",):
             raise ValueError(f"ewald_own = {ewald_own!r}: must be one of auto, {', '.join(OWN_MODES)}")
         # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
@@ -92,7 +94,6 @@ class LayerPotentials:
             self.idx = np.arange(self.N_total)
             self.local = surface
         else:
-            from ..surface import Surface
             self.idx = part.idx
             self.local = Surface(surface.coeffs[part.idx], p)
         self.p, self.N = p, self.local.n_vesicles
@@ -175,7 +176,6 @@ class LayerPotentials:
         ext = (pts.max(axis=1) - pts.min(axis=1)).max(axis=0, initial=0.0)
         if self.part is not None:
             ext = np.array([self.part.max(float(e)) for e in ext])
-        from .ewald import own_extent_ok
         L = np.broadcast_to(np.asarray(s.period, dtype=float), (3,))
         return "smooth" if own_extent_ok(ext, 0.49 * float(L.min()), s.period) else "subtract"
 
@@ -195,7 +195,6 @@ class LayerPotentials:
         sum without the own pairs and subtraction, less the E_v GEMV) times the expected
         applications per set-up exceeds the set-up of E_v, else "subtract".  Figures of the
         whole problem (every rank decides the same)."""
-        from .far import predicted_ewald
         s, N, mq, mp = self.settings, self.N_total, self.Tq.npts, self.Tp.npts
         lo = gq.X.reshape(-1, 3).min(axis=0) if gq.X.size else np.zeros(3)
         hi = gq.X.reshape(-1, 3).max(axis=0) if gq.X.size else np.zeros(3)
@@ -225,7 +224,6 @@ class LayerPotentials:
         of the vesicles; then the surfaces this rank needs (vesflow.parallel.Halo): those within
         the near zone h_n of one of its vesicles, within the Ewald real-space cutoff (ewald),
         all (fmm: the FMM sums over gathered sources).  Returns (backend, Ewald parameters)."""
-        from ..parallel import Halo, vesicle_boxes
         part, s, N, mq, mp = self.part, self.settings, self.N_total, self.Tq.npts, self.Tp.npts
         with _timed(self.timers, "gather"):
             boxes = part.gather(vesicle_boxes(gq.X, self.local.points()))

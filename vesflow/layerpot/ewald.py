@@ -45,7 +45,7 @@ Parameters from the requested accuracy ``tol`` (relative to the largest velocity
 error estimates of Lindbo and Tornberg (2010): real space ``~ exp(-xi^2 rc^2)``, Fourier space
 ``~ exp(-k_max^2 / (4 xi^2))`` with ``k_max = pi K / P`` (K modes per period P), i.e.
 ``xi rc = sqrt(ln(1/tol) + C_REAL)`` and ``k_max = 2 xi sqrt(ln(1/tol) + C_FOURIER)``; the
-cutoff ``rc`` is the one the cost model (:data:`COST`) predicts fastest.  The window of the
+cutoff ``rc`` is the one of least cost by the frozen weights :data:`COST`.  The window of the
 free-space kernel: ``W = prod_a (erf((B_a + w/2 - x_a)/(sqrt 2 sigma)) + erf((B_a + w/2 +
 x_a)/(sqrt 2 sigma)))/2`` with ``sigma k_max = sqrt(2 (ln(1/tol) + C_WINDOW))`` (its
 spectrum has decayed at k_max) and ``w = 2 sqrt 2 sigma sqrt(ln(1/tol) + C_WINDOW)``
@@ -62,7 +62,7 @@ from scipy.special import erf
 
 from vesflow._kernels import ewald as _kernels
 from vesflow._kernels import stokes as _stokes
-from vesflow.errors import SceneError
+from vesflow.errors import SettingsError
 
 NUFFT_LIBS = ("finufft", "ducc0")
 # margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
@@ -79,19 +79,16 @@ NUFFT_EPS_FACTOR = 1.0
 # ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
 DUCC0_SIGMA = (1.3, 1.6)
 DUCC0_SIGMA_MIN_EPS = 5e-11
-# cost model of the parameter choice, CPU seconds of one thread, measured with
-# benchmarks/ewald_split.py: real space per (target, source) pair inside the cutoff (the
-# estimate of _pair_fraction; single layer; about the same again for the double layer), per
-# target (the cell traversal, its range list) and per own-vesicle pair (the
-# vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
-# width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid), times
-# (grid / 1e7)^fft_growth (large grids cost more per point: caches); k-space multiplication per
-# mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
-# fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
-# and periodic N = 125 (dense) and 512 at 3 and 1 cutoffs, p = 16, tol 1e-6: the NUFFT parts
-# within 0.6-1.7x of each measurement (rms 21 %), the real space within 20 %, the totals at the
-# choice within 15 % (the third session's constants pair 5.5e-9, nufft_point 1.07e-9,
-# fft_point 1.6e-9, mode 1e-8 and no growth over-predicted the free-space sums 2x)
+# weights of the cutoff rule (choose_params: the cutoff of least modelled cost), in the units of
+# CPU seconds of one thread: real space per (target, source) pair inside the cutoff (the estimate
+# of _pair_fraction; single layer), per target (the cell traversal) and per own-vesicle pair;
+# NUFFT spreading and interpolation per point per transform per kernel width cubed; FFT per
+# fine-grid point (3.4 per mode) per transform per log2(grid), times (grid / 1e7)^fft_growth;
+# k-space multiplication per mode per transform.  Frozen: they are the development machine's
+# figures (benchmarks/ewald_split.py) and part of the method, so that the cutoff, and with it
+# the result, is the same on every machine; this machine's measured figures are
+# vesflow.calibration's, which only `vesflow check`'s predictions read
+# (docs/explanation/calibration.md)
 COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 8.8e-10, "fft_point": 6.3e-10,
         "fft_growth": 0.3, "mode": 4.0e-9}
 # memory of the Fourier grids of one pass (complex; one grid per pair of real source components
@@ -131,10 +128,10 @@ class EwaldParams:
     nufft_eps: float
     tol: float
 
-    def predicted_seconds(self, nsrc, ntrg, threads=1, ncomp=3, own_skip=None):
-        """Cost model (:data:`COST`) of one evaluation with ``ncomp`` source components
-        (``own_skip``: as :func:`choose_params`)."""
-        return _predicted(self, nsrc, ntrg, threads, ncomp, own_skip=own_skip)
+    def predicted_seconds(self, nsrc, ntrg, threads=1, ncomp=3, own_skip=None, cost=None):
+        """Cost model of one evaluation with ``ncomp`` source components (``own_skip``: as
+        :func:`choose_params`; ``cost``: the weights, default :data:`COST`)."""
+        return _predicted(self, nsrc, ntrg, threads, ncomp, own_skip=own_skip, cost=cost)
 
 
 def _kernel_width(eps):
@@ -186,30 +183,32 @@ def _pair_fraction(p):
     return min(1.0, 8.0 * p.rc ** 3 * float(g @ w) / vol)
 
 
-def _predicted_parts(p, nsrc, ntrg, ncomp, own=0, own_skip=None):
-    """Cost model (:data:`COST`) of one evaluation by part, one thread: real space (with the own
+def _predicted_parts(p, nsrc, ntrg, ncomp, own=0, own_skip=None, cost=None):
+    """Cost model (weights ``cost``, default :data:`COST`; vesflow.costs passes the machine's,
+    vesflow.calibration) of one evaluation by part, one thread: real space (with the own
     vesicle; ``own_skip`` = (sources per vesicle, mean area): without it, as
     EwaldSum(own="smooth"): no own pairs inside rc (:func:`own_pairs_inside`), no own
     subtraction), type-1 NUFFT, k-space multiplication, type-2 NUFFT (CPU seconds)."""
+    c = COST if cost is None else cost
     pairs = ntrg * nsrc * _pair_fraction(p)
     if own_skip is not None:
         pairs = max(0.0, pairs - ntrg * own_pairs_inside(p.rc, *own_skip))
         own = 0
     m = float(np.prod(p.modes))
     fine = 3.4 * m
-    fft = COST["fft_point"] * fine * math.log2(max(fine, 2.0)) * (fine / 1e7) ** COST["fft_growth"]
+    fft = c["fft_point"] * fine * math.log2(max(fine, 2.0)) * (fine / 1e7) ** c["fft_growth"]
     wd = _kernel_width(p.nufft_eps) ** 3
     layers = 1 + (ncomp > 3)
     packed = (ncomp + 1) // 2                    # type-1 transforms; 2 type-2 (EwaldSum.fourier)
-    return {"real": (pairs * COST["pair"] + own * COST["own_pair"]) * layers + ntrg * COST["target"],
-            "type1": packed * (COST["nufft_point"] * wd * nsrc + fft),
-            "kspace": COST["mode"] * m * (packed + 2),
-            "type2": 2 * (COST["nufft_point"] * wd * ntrg + fft)}
+    return {"real": (pairs * c["pair"] + own * c["own_pair"]) * layers + ntrg * c["target"],
+            "type1": packed * (c["nufft_point"] * wd * nsrc + fft),
+            "kspace": c["mode"] * m * (packed + 2),
+            "type2": 2 * (c["nufft_point"] * wd * ntrg + fft)}
 
 
-def _predicted(p, nsrc, ntrg, threads, ncomp, own=0, own_skip=None):
-    """Cost model of one evaluation, seconds with ``threads`` threads."""
-    return sum(_predicted_parts(p, nsrc, ntrg, ncomp, own, own_skip).values()) / max(1, threads)
+def _predicted(p, nsrc, ntrg, threads, ncomp, own=0, own_skip=None, cost=None):
+    """Cost model of one evaluation, seconds with ``threads`` threads (``cost``: as _predicted_parts)."""
+    return sum(_predicted_parts(p, nsrc, ntrg, ncomp, own, own_skip, cost).values()) / max(1, threads)
 
 
 def _exponents(lt, double_layer=True):
@@ -252,7 +251,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     ``own_skip`` = (sources per vesicle, mean vesicle area): the real space leaves out every
     target's own vesicle (``EwaldSum(own="smooth")``), the model counts the other pairs only."""
     if not (1e-15 < tol < 1.0):
-        raise SceneError(f"Ewald accuracy -ves_far_tol must lie in (1e-15, 1), got {tol}")
+        raise SettingsError(f"Ewald accuracy -ves_far_tol must lie in (1e-15, 1), got {tol}")
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     n = pts.shape[0]
     nsrc = n // 2 if nsrc is None else nsrc
@@ -263,7 +262,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     if period is not None:
         L = np.broadcast_to(np.asarray(period, dtype=np.float64), (3,)).copy()
         if np.any(~np.isfinite(L)) or np.any(L <= 0):
-            raise SceneError(f"period must be positive, got {period}")
+            raise SettingsError(f"period must be positive, got {period}")
         lo, box = np.zeros(3), L
         rc_hi = 0.49 * float(L.min())
     else:
@@ -293,9 +292,9 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
         if best is None or t < best[0]:
             best = (t, p)
     if best is None:
-        raise SceneError(f"Ewald sum at -ves_far_tol {tol:g}: every real-space cutoff needs a Fourier "
-                         f"grid above {MAX_MODES} modes ({MAX_GRID_BYTES / 2 ** 30:g} GiB); raise -ves_far_tol "
-                         "or use -ves_far direct")
+        raise SettingsError(f"Ewald sum at -ves_far_tol {tol:g}: every real-space cutoff needs a Fourier "
+                            f"grid above {MAX_MODES} modes ({MAX_GRID_BYTES / 2 ** 30:g} GiB); raise -ves_far_tol "
+                            "or use -ves_far direct")
     return best[1]
 
 
@@ -380,7 +379,7 @@ class _Nufft:
 
     def __init__(self, lib, modes, src01, trg01, eps, threads):
         if lib not in NUFFT_LIBS:
-            raise SceneError(f"NUFFT library {lib!r} is not one of {', '.join(NUFFT_LIBS)}")
+            raise SettingsError(f"NUFFT library {lib!r} is not one of {', '.join(NUFFT_LIBS)}")
         self.lib, self.modes, self.eps, self.threads = lib, tuple(int(m) for m in modes), eps, threads
         self.src, self.trg = src01, trg01
         self._plans = {}
@@ -491,7 +490,7 @@ class EwaldSum:
         if nufft is None:
             nufft = DEFAULT_NUFFT if _have(DEFAULT_NUFFT) else next((n for n in NUFFT_LIBS if _have(n)), None)
             if nufft is None:
-                raise SceneError("the Ewald far field needs finufft or ducc0 (pip install finufft)")
+                raise SettingsError("the Ewald far field needs finufft or ducc0 (pip install finufft)")
         self.nufft_lib = nufft
         # sources sorted by vesicle id; index of each target's own vesicle (-1: none)
         sid = self.src_id

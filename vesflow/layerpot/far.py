@@ -40,10 +40,9 @@ Backends
     ``own="smooth"`` leaves the own vesicle out of the real-space sum and keeps its smooth
     Fourier share, which the caller removes (LayerPotentials: vesflow.layerpot.own_smooth).
 ``"auto"``
-    The backend :func:`predicted_seconds` says is fastest (fmm only if fmm3dpy imports,
-    ewald only if ducc0 or finufft does and the points are given); periodic: always ewald.
-    The constants were measured with benchmarks/far_field.py and benchmarks/ewald.py
-    (docs/far_field.md).
+    The backend of least cost by the frozen weights of :func:`predicted_seconds` and
+    :data:`vesflow.layerpot.ewald.COST`, on one thread (fmm only if fmm3dpy imports, ewald
+    only if ducc0 or finufft does and the points are given); periodic: always ewald.
 
 FMM accuracy: ``eps`` (default ``DEFAULT_EPS = 1e-8``) is fmm3dpy's requested precision;
 the error measured against the direct sum, relative to the largest velocity, is below
@@ -57,23 +56,21 @@ import numpy as np
 
 from vesflow._kernels import search as _search
 from vesflow._kernels import stokes as _stokes
-from vesflow.errors import NumericalFailure, SceneError
+from vesflow.errors import NumericalFailure, SettingsError
+
+from . import ewald
 
 BACKENDS = ("direct", "fmm", "ewald", "auto")
 DEFAULT_EPS = 1e-8
-# Cost model of "auto", measured with benchmarks/far_field.py on this machine (docs/far_field.md):
-# direct sum: seconds per (target, source) pair for ONE OpenMP thread (divided by the threads);
-# FMM (fmm3dpy wheel, serial): seconds per point (sources + targets) at the measured eps,
-# interpolated in log(eps) in between, clamped outside.
-# Re-measured (OMP_NUM_THREADS=1 benchmarks/far_field.py, p = 16, q = 32, N = 8..128, load ~3.5
-# on 2 cores; docs/far_field.md): 3.91 ns CPU per pair (direct, N = 128; was 3.6) and 235 us CPU
-# per point (fmm eps 1e-8, N = 64; was 200); measured crossover N ~ 150 vesicles (power laws of
-# the wall and CPU times), the model below switches at N = 139 (it said 129 before).
-# Second wave: the vectorized kernels (pairsum.h, AVX-512 clone) 1.37-1.47 ns CPU per pair for two
-# vesicles at p = 6..16 (benchmarks/cost_model.py).
+# Weights of the "auto" rule (choose_backend: the backend of least modelled cost, every backend
+# on ONE thread, so that the choice does not depend on OMP_NUM_THREADS or the machine's load):
+# seconds per (target, source) pair of the direct sum; FMM (fmm3dpy, serial) seconds per point
+# (sources + targets) at the listed eps, interpolated in log(eps), clamped outside.  Frozen: the
+# development machine's figures (benchmarks/far_field.py, benchmarks/cost_model.py) and part of
+# the method, so that the backend, and with it the result, is the same on every machine; this
+# machine's measured figures are vesflow.calibration's, which only `vesflow check` reads
+# (docs/explanation/calibration.md).
 DIRECT_SECONDS_PER_PAIR = 1.4e-9
-# 1e-6 re-measured: 119 us per point at N = 64, 165 us at N = 128 (the per-point cost grows like N^0.26;
-# benchmarks/far_field.py --eps 1e-6, load ~9, docs/far_field.md): the larger kept
 FMM_SECONDS_PER_POINT = {1e-6: 1.65e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
 # targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
 # moved onto it (FMM backend only)
@@ -89,50 +86,54 @@ def _have_fmm():
 
 
 def _have_ewald():
-    from . import ewald
     return any(ewald._have(lib) for lib in ewald.NUFFT_LIBS)
 
 
-def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None):
-    """Predicted seconds per evaluation ``(direct, fmm)`` of the single layer (model above)."""
+def predicted_seconds(nsrc, ntrg, eps=DEFAULT_EPS, threads=None, per_pair=None, per_point=None):
+    """Predicted seconds per evaluation ``(direct, fmm)`` of the single layer: by the rule's
+    weights above, or by ``per_pair`` (seconds) and ``per_point`` ({eps: seconds}) if given
+    (vesflow.costs: this machine's, vesflow.calibration)."""
     threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
-    t_direct = float(nsrc) * float(ntrg) * DIRECT_SECONDS_PER_PAIR / threads
-    le = sorted(FMM_SECONDS_PER_POINT)
-    per_point = float(np.exp(np.interp(np.log(eps), np.log(le),
-                                       np.log([FMM_SECONDS_PER_POINT[e] for e in le]))))
-    return t_direct, (float(nsrc) + float(ntrg)) * per_point
+    per_pair = DIRECT_SECONDS_PER_PAIR if per_pair is None else per_pair
+    per_point = FMM_SECONDS_PER_POINT if per_point is None else per_point
+    t_direct = float(nsrc) * float(ntrg) * per_pair / threads
+    le = sorted(per_point)
+    t_point = float(np.exp(np.interp(np.log(eps), np.log(le), np.log([per_point[e] for e in le]))))
+    return t_direct, (float(nsrc) + float(ntrg)) * t_point
 
 
 def predicted_ewald(points, nsrc, ntrg, own_pairs, eps=DEFAULT_EPS, threads=None, period=None,
-                    double_layer=False, own_skip=None):
+                    double_layer=False, own_skip=None, cost=None):
     """``(seconds, params)`` of the Ewald sum (single layer) over ``points`` (sources and
     targets, or any points spanning their box), ``own_pairs`` target-source pairs of the
     same vesicle (the O(N M Q) subtraction); the parameters from
     :func:`vesflow.layerpot.ewald.choose_params`; ``double_layer``: parameters accurate for
     the stresslet too (the time is still that of the single layer); ``own_skip``: the
-    own="smooth" mode (:func:`vesflow.layerpot.ewald.choose_params`)."""
-    from . import ewald
+    own="smooth" mode (:func:`vesflow.layerpot.ewald.choose_params`); ``cost``: the weights of
+    the time (default the rule's, :data:`vesflow.layerpot.ewald.COST`; the parameters are the
+    rule's whatever ``cost`` is)."""
     threads = _stokes.max_threads() if threads is None else max(int(threads), 1)
     p = ewald.choose_params(eps, points, period, nsrc, ntrg, threads, 9 if double_layer else 3, own_skip)
-    return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs, own_skip), p
+    return ewald._predicted(p, nsrc, ntrg, threads, 3, own_pairs, own_skip, cost), p
 
 
 def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS, t_ewald=None, periodic=False):
     """Resolve ``backend`` ("direct", "fmm", "ewald" or "auto") for S sources and T targets.
 
-    "auto" takes the backend :func:`predicted_seconds` says is fastest among those available
-    (ewald only when its prediction ``t_ewald`` is given); periodic: ewald, the only one.
+    "auto" takes the backend of least cost by the rule's weights (:func:`predicted_seconds`,
+    one thread) among those available (ewald only when its prediction ``t_ewald``, one thread,
+    is given); periodic: ewald, the only one.
     """
     if backend not in BACKENDS:
-        raise SceneError(f"far-field backend {backend!r} is not one of {', '.join(BACKENDS)}")
+        raise SettingsError(f"far-field backend {backend!r} is not one of {', '.join(BACKENDS)}")
     if periodic and backend not in ("ewald", "auto"):
-        raise SceneError(f"far-field backend {backend!r} cannot sum over a periodic box; "
-                         "use -ves_far ewald or auto")
+        raise SettingsError(f"far-field backend {backend!r} cannot sum over a periodic box; "
+                            "use -ves_far ewald or auto")
     if backend == "auto":
         if periodic:
             backend = "ewald"
         else:
-            t_direct, t_fmm = predicted_seconds(nsrc, ntrg, eps)
+            t_direct, t_fmm = predicted_seconds(nsrc, ntrg, eps, threads=1)
             cands = [(t_direct, "direct")]
             if _have_fmm():
                 cands.append((t_fmm, "fmm"))
@@ -140,11 +141,11 @@ def choose_backend(nsrc, ntrg, backend="auto", eps=DEFAULT_EPS, t_ewald=None, pe
                 cands.append((t_ewald, "ewald"))
             return min(cands)[1]
     if backend == "fmm" and not _have_fmm():
-        raise SceneError("far-field backend 'fmm' needs fmm3dpy (pip install fmm3dpy); "
-                         "use backend 'direct' or 'auto'")
+        raise SettingsError("far-field backend 'fmm' needs fmm3dpy (pip install fmm3dpy); "
+                            "use backend 'direct' or 'auto'")
     if backend == "ewald" and not _have_ewald():
-        raise SceneError("far-field backend 'ewald' needs ducc0 or finufft (pip install finufft); "
-                         "use backend 'direct' or 'auto'")
+        raise SettingsError("far-field backend 'ewald' needs ducc0 or finufft (pip install finufft); "
+                            "use backend 'direct' or 'auto'")
     return backend
 
 
@@ -157,16 +158,15 @@ def resolve_backend(backend, eps, period, nsrc, ntrg, points, own_pairs, double_
     t_ewald, params = None, None
     if backend == "auto" and period is None and nsrc and ntrg and _have_ewald():
         try:
-            t_ewald, params = predicted_ewald(points, nsrc, ntrg, own_pairs, eps, double_layer=double_layer,
-                                              own_skip=own_skip)
-        except SceneError:               # no grid fits the memory: not a candidate
+            t_ewald, params = predicted_ewald(points, nsrc, ntrg, own_pairs, eps, threads=1,
+                                              double_layer=double_layer, own_skip=own_skip)
+        except SettingsError:               # no grid fits the memory: not a candidate
             t_ewald, params = None, None
     backend = choose_backend(nsrc, ntrg, backend, eps, t_ewald, periodic=period is not None)
     if backend != "ewald":
         return backend, None
     if params is None:
-        from .ewald import choose_params
-        params = choose_params(eps, points, period, nsrc, ntrg, _stokes.max_threads(), 9 if double_layer else 3,
+        params = ewald.choose_params(eps, points, period, nsrc, ntrg, _stokes.max_threads(), 9 if double_layer else 3,
                                own_skip)
     return backend, params
 
@@ -225,12 +225,11 @@ class FarField:
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
         self.trg_id = _ids("trg_id", trg_id, self.trg.shape[0])
         if not (0.0 < eps < 1.0):
-            raise SceneError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
+            raise SettingsError(f"far-field accuracy eps (-ves_far_tol) must lie in (0, 1), got {eps}")
         self.eps = float(eps)
         self.period = period
-        from .ewald import OWN_MODES
-        if own not in OWN_MODES:
-            raise ValueError(f"FarField own = {own!r}: must be one of {', '.join(OWN_MODES)}")
+        if own not in ewald.OWN_MODES:
+            raise ValueError(f"FarField own = {own!r}: must be one of {', '.join(ewald.OWN_MODES)}")
         skip = own_skip if own == "smooth" else None
         if backend == "auto" or (backend == "ewald" and params is None):
             backend, params = resolve_backend(backend, self.eps, period, self.src.shape[0], self.trg.shape[0],
@@ -252,7 +251,6 @@ class FarField:
         if self.backend == "fmm":
             self._setup_fmm()
         elif self.backend == "ewald":
-            from .ewald import EwaldSum
             # own="subtract": the own vesicle's pairs are summed inside rc and its full kernel
             # subtracted: a target a rounding error away from an own source (p- and q-grid
             # longitudes that coincide only up to rounding, e.g. q = 24 at p = 16) would cancel
@@ -261,9 +259,9 @@ class FarField:
             # subtracted).  own="smooth" has no own pair (G^F is smooth): targets as given, the
             # positions the caller's correction is built at
             trg = self.trg if own == "smooth" else self._snapped_targets()
-            self.ewald = EwaldSum(self.src, self.src_id, trg, self.trg_id, tol=self.eps, period=period,
-                                  params=params, spread=spread, double_layer=double_layer, own=own,
-                                  own_skip=skip)
+            self.ewald = ewald.EwaldSum(self.src, self.src_id, trg, self.trg_id, tol=self.eps, period=period,
+                                        params=params, spread=spread, double_layer=double_layer, own=own,
+                                        own_skip=skip)
             self.smooth_own = own == "smooth"
 
     def _snapped_targets(self):

@@ -15,6 +15,8 @@ import numpy as np
 
 from .. import sph
 from .._kernels import series
+from .._kernels import search
+from ..errors import SettingsError
 
 L_POINTS = 8
 
@@ -185,7 +187,6 @@ def near_pairs_images(trg, trg_id, src, src_id, src_off, h, period=None):
     (unwrapped) position.  The period must exceed a vesicle's diameter + 2 h (a vesicle near
     its own image is not detected).  Returns ``(pairs (P, 2) int64, positions (P, 3))``.
     """
-    from .._kernels import search
     trg = np.ascontiguousarray(trg, dtype=np.float64)
     if period is None:
         pairs, _ = search.near_pairs(trg, trg_id, src, src_id, h)
@@ -201,9 +202,8 @@ def near_pairs_images(trg, trg_id, src, src_id, src_off, h, period=None):
     radius = float(np.max(np.linalg.norm(src - cent[vrow], axis=1))) if len(src) else 0.0
     margin = radius + h
     if 2.0 * margin >= float(L.min()):
-        from ..errors import SceneError
-        raise SceneError(f"[domain] period = {float(L.min()):g} must exceed a vesicle's diameter plus twice the "
-                         f"near distance ({2.0 * margin:.3g}): a vesicle would be near its own image")
+        raise SettingsError(f"[domain] period = {float(L.min()):g} must exceed a vesicle's diameter plus twice the "
+                            f"near distance ({2.0 * margin:.3g}): a vesicle would be near its own image")
     tw = trg - L * np.floor(trg / L)
     copies, index = [], []
     for n in np.ndindex(3, 3, 3):

@@ -27,6 +27,7 @@ import numpy as np
 
 from .. import sph
 from .._kernels import ewald as _ewald
+from ..threads import map_vesicles
 from .singular import SelfOperators, project_rows
 
 NONE = np.empty((0, 0, 0))
@@ -47,7 +48,6 @@ class OwnSmoothOperators:
         C = sph.n_coeffs(p)
         self.single = np.empty((N, 3 * C, 3 * C), dtype) if want_single else None
         self.double = np.empty((N, 3 * C, 3 * C), dtype) if want_double else None
-        from ..threads import map_vesicles
 
         def store(v):
             S, D = self._assemble(trg[v], src[v], w[v], nw[v], want_single, want_double)

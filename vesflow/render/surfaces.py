@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from .. import sph
+from ..io import frame_fields, iter_frames, read_output
+from ..vtk_export import surface_faces
 
 RESOLUTIONS = (24, 32, 40, 48, 56, 64, 80, 96, 128)  # the default resolution is the first of these (>= p) without facets
 MAX_FACET_ANGLE = 8.0                 # degrees between the normals of adjacent triangles
@@ -94,7 +96,6 @@ def surface_on_grid(coeffs, p, q):
 @lru_cache(maxsize=16)
 def _edge_pairs(q):
     """Pairs (E, 2) of triangles of one vesicle on the q-grid that share an edge."""
-    from ..vtk_export import surface_faces
     faces = surface_faces(1, q)
     edges = np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1)
     tri = np.tile(np.arange(len(faces)), 3)
@@ -107,7 +108,6 @@ def _edge_pairs(q):
 def facet_angle(coeffs, p, q):
     """Largest angle (degrees) between the normals of adjacent triangles of the surfaces
     (N, 3, C) drawn on the q-grid."""
-    from ..vtk_export import surface_faces
     pts, _ = surface_on_grid(coeffs, p, q)
     f = surface_faces(1, q)
     a, b, c = pts[:, f[:, 0]], pts[:, f[:, 1]], pts[:, f[:, 2]]
@@ -164,13 +164,11 @@ class RunFrames:
     kind = "h5"
 
     def __init__(self, path, frames=None, resolution=None):
-        from ..io import frame_fields, read_output
         self.path = Path(path)
         out = read_output(self.path, frames=frames, fields=[])
         self.p = out.p
         self.index = np.asarray(out.frame_index)
         if resolution is None and len(self.index):
-            from ..io import iter_frames
             pick = sorted({0, len(self.index) // 2, len(self.index) - 1})
             ves = np.unique(np.linspace(0, out.n_vesicles - 1, min(16, out.n_vesicles)).round().astype(int))
             sample = np.concatenate([fr["coefficients"][ves] for fr in
@@ -185,12 +183,10 @@ class RunFrames:
         self.title = _title_of(out.attrs.get("scene", ""))
         self.period = float(out.attrs.get("periodic_length", 0.0) or 0.0)
         self.fields = set(frame_fields(self.path))
-        from ..vtk_export import surface_faces
         self.faces = surface_faces(1, self.q)
 
     def read(self, positions, color):
         """FrameMesh of the selected frames at the given positions (into self.times)."""
-        from ..io import iter_frames
         names = ["coefficients"] + {"tension": ["tension"], "speed": ["velocity"]}.get(color, [])
         for fr in iter_frames(self.path, fields=names, frames=self.index[list(positions)]):
             pts, nrm = surface_on_grid(fr["coefficients"], self.p, self.q)
@@ -205,7 +201,6 @@ class RunFrames:
     def scan(self, color):
         """Per frame: the drawn surface points (N, P, 3) (for framing) and the colour
         values as stored (for the colour range; None for color none)."""
-        from ..io import iter_frames
         name = {"tension": "tension", "speed": "velocity"}.get(color)
         if name is not None and name not in self.fields:
             raise ValueError(f"render: color={color!r} needs point data {color!r}"

@@ -9,6 +9,7 @@ from functools import lru_cache
 
 import numpy as np
 
+SHAPES = ("sphere", "ellipsoid", "oblate", "prolate", "biconcave")
 EVANS_FUNG = (0.207, 2.003, -1.123)
 
 

@@ -7,10 +7,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import _unit_shape, euler_zyz
+from .geometry import SHAPES, _unit_shape, euler_zyz  # noqa: F401 (SHAPES re-exported)
 from .validate import _fmt, _num
 
-SHAPES = ("sphere", "ellipsoid", "oblate", "prolate", "biconcave")
 FLOW_TYPES = ("shear", "extensional", "poiseuille", "taylor_green")
 BICONCAVE_V_RANGE = (0.6, 0.7)     # the Evans-Fung profile scaled in height by 0.85 .. 1.3
 BICONCAVE_V_DEFAULT = 0.65
