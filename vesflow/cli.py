@@ -1,6 +1,7 @@
 """`vesflow run | check | render` (INTERFACE.md).  Exit status: 0 done, 2 bad input, 3 numerical failure."""
 from __future__ import annotations
 
+import json
 import os
 import shlex
 import sys
@@ -266,7 +267,9 @@ def cmd_run(rest):
                                   options_text=shlex.join(petsc_args), version=__version__, p=sc.p,
                                   n_vesicles=sc.n_vesicles, periodic_length=sc.periodic_length,
                                   checkpoint_every=ck_every)
-            writer.write_attrs(options_resolved=shlex.join(opts.as_argv()))
+            from .costs import decision_rules, decisions  # lazy: numpy is loaded after threads.early_environment() (main)
+            writer.write_attrs(options_resolved=shlex.join(opts.as_argv()), decision_rules=json.dumps(decision_rules()),
+                               decisions=json.dumps(decisions(sc, opts)))
     except Exception as e:                   # rank 0 could not create / reopen the file
         failure = e
     if size > 1:             # every rank learns it (no rank left waiting), rank 0 reports it

@@ -34,11 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import calibration as calmod, sph
-from ._kernels import search, stokes
+from ._kernels import stokes
 from .layerpot import ewald as ewaldmod, far as farmod
 from .layerpot.evaluator import (APPLIES_PER_SETUP, OWN_GEMV_BYTE, OWN_SETUP_PAIR, OWN_SINGLE_TOL, LayerPotentials,
                                  Settings)
-from .layerpot.near import near_distance
+from .layerpot.near import near_distance, near_pairs_images
 from .setup_state import initial_coefficients
 from .surface import Surface
 
@@ -151,15 +151,17 @@ def _state(scene, p, q):
     return S, S.geometry(q), S.points()
 
 
-def _near_pairs(S, p, q, near_factor):
-    """Near (p-grid point, other vesicle) pairs of the initial configuration."""
+def _near_pairs(S, p, q, near_factor, period=None):
+    """Near (p-grid point, vesicle) pairs of the initial configuration (periodic: with the images;
+    the candidates of LayerPotentials' near set-up)."""
     N = S.n_vesicles
     trg = np.ascontiguousarray(S.points().reshape(-1, 3))
     src = np.ascontiguousarray(S.points(q).reshape(-1, 3))
     trg_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p).npts)
     src_id = np.repeat(np.arange(N, dtype=np.int64), sph.transform(p, q).npts)
+    src_off = np.arange(N + 1, dtype=np.int64) * sph.transform(p, q).npts
     h = float(near_distance(S.area(), q, near_factor).max())
-    pairs, _ = search.near_pairs(trg, trg_id, src, src_id, h)
+    pairs, _ = near_pairs_images(trg, trg_id, src, src_id, src_off, h, period)
     return int(np.asarray(pairs).reshape(-1, 2).shape[0])
 
 
@@ -191,8 +193,9 @@ def decisions(scene, opts=None, state=None, near_pairs=None):
     """The numerical choices a run of this scene and these options makes at its first set-up, by
     the fixed rules (`decision_rules`; no calibration is read): far-field backend, Ewald
     parameters (xi, rc, modes), own-vesicle mode, and the preconditioner rebuild's price in GMRES
-    iterations.  A JSON-ready dict.  state: (surface, q-grid geometry, p-grid points) of t = 0;
-    near_pairs: their count (default: counted)."""
+    iterations (None when the near pairs are not counted: N M above NEAR_COUNT_MAX_POINTS).  A
+    JSON-ready dict.  state: (surface, q-grid geometry, p-grid points) of t = 0; near_pairs:
+    their count (default: counted; negative: not counted)."""
     o = dict(opts) if opts is not None else {}
     p, N = scene.p, scene.n_vesicles
     st = _settings(scene, o)
@@ -214,8 +217,10 @@ def decisions(scene, opts=None, state=None, near_pairs=None):
             out["ewald_own"] = mode
             out["ewald"] = {"xi": params.xi, "rc": params.rc, "modes": list(params.modes)}
     if near_pairs is None:
-        near_pairs = _near_pairs(S, p, q, st.near_factor) if N > 1 else 0
-    out["pc_rebuild_iterations"] = float(pc_rebuild_iterations(N, p, q, dl, near_pairs, backend, st.fmm_eps))
+        near_pairs = (0 if N == 1 else _near_pairs(S, p, q, st.near_factor, st.period) if N * 2 * p * (p + 1) <= NEAR_COUNT_MAX_POINTS
+                      else -1)
+    out["pc_rebuild_iterations"] = (None if near_pairs < 0 else
+                                    float(pc_rebuild_iterations(N, p, q, dl, near_pairs, backend, st.fmm_eps)))
     return out
 
 
@@ -225,7 +230,9 @@ def describe_decisions(d):
     if d.get("ewald"):
         e = d["ewald"]
         far += f" (rc = {e['rc']:.4g}, xi = {e['xi']:.4g}, modes {'x'.join(map(str, e['modes']))}, own vesicle {d['ewald_own']})"
-    return f"far field {far}; preconditioner rebuilt after ~{d['pc_rebuild_iterations']:.0f} excess GMRES iterations"
+    its = d["pc_rebuild_iterations"]
+    return (f"far field {far}; preconditioner rebuilt after "
+            + (f"{its:.3g} excess GMRES iterations" if its is not None else "its price in iterations (near pairs not counted)"))
 
 
 def decision_rules():
@@ -275,7 +282,8 @@ def estimate(scene, opts=None, near=True, calibration=None):
     state = _state(scene, p, q) if N > 1 or eff.periodic else None
     pairs = 0
     if N > 1 and near:
-        pairs = _near_pairs(state[0], p, q, float(o.get("near_factor") or 1.0)) if N * M <= NEAR_COUNT_MAX_POINTS else -1
+        pairs = (_near_pairs(state[0], p, q, float(o.get("near_factor") or 1.0), scene.periodic_length or None)
+                 if N * M <= NEAR_COUNT_MAX_POINTS else -1)
     mem_near = max(pairs, 0) * (C + 3 * 8 + 9) * 8
     threads = _threads()
     t_forces = N * (cal.forces_s[0] + cal.forces_s[1] * p ** 3)
@@ -283,7 +291,7 @@ def estimate(scene, opts=None, near=True, calibration=None):
     chosen = None
     backend, t_far, eps = "none", 0.0, float(o.get("far_tol") or farmod.DEFAULT_EPS)
     if N > 1 or eff.periodic:          # periodic: a single vesicle sees its images
-        chosen = decisions(scene, o, state=state, near_pairs=max(pairs, 0))
+        chosen = decisions(scene, o, state=state, near_pairs=pairs if near else -1)
         backend = chosen["far_backend"]
         nsrc, ntrg = N * Mq, N * M
         t_direct, t_fmm = farmod.predicted_seconds(nsrc, ntrg, eps, threads, cal.direct_s_per_pair,
