@@ -140,6 +140,11 @@ def test_the_calibration_moves_the_predicted_times(wild_file, capsys):
     ew = costs.estimate(ps, po)
     assert eb.far_backend == ew.far_backend == "ewald" and not 0.1 < ew.t_far / eb.t_far < 10
     assert eb.decisions == ew.decisions
+    ls, lo = scene_and_opts(LATTICE, ["-ves_far_tol", "1e-6"])
+    lb, lw = costs.estimate(ls, lo, calibration=calibration.DEFAULTS), costs.estimate(ls, lo)
+    assert lb.decisions == lw.decisions and lb.ewald_best[0] == lb.decisions["ewald"]["rc"]   # defaults: the rule's weights
+    assert lw.ewald_best[0] < 0.9 * lw.decisions["ewald"]["rc"] and lw.ewald_best[1] < lw.t_far   # this calibration's best
+    assert "would be rc = " in str(lw) and "also the fastest" in str(lb)
     from vesflow import cli
     assert cli.main(["check", str(write_scene(wild_file.parent, FREE))]) == 0
     out = capsys.readouterr().out

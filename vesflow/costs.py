@@ -90,6 +90,7 @@ class Estimate:
     t_own: float = 0.0           # their GEMV per iteration
     calibration: str = "defaults"  # where the seconds per unit of work came from (vesflow.calibration)
     decisions: dict = None       # the rules' choices at t = 0 (`decisions`)
+    ewald_best: tuple = None     # (rc, seconds) of the cutoff this calibration would find fastest (ewald)
 
     @property
     def t_step(self):
@@ -125,7 +126,15 @@ class Estimate:
             f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
             self._fits(),
         ] + ([f"choices  {describe_decisions(self.decisions)} (fixed rules, the same on every machine)"]
-             if self.decisions else []))
+             if self.decisions else [])
+          + ([self._ewald_line()] if self.ewald_best and self.t_far > 0 else []))
+
+    def _ewald_line(self):
+        rc, t = self.ewald_best
+        if rc == self.decisions["ewald"]["rc"]:
+            return "         the rule's Ewald cutoff is also the fastest by this calibration"
+        return (f"         by this calibration the fastest Ewald cutoff would be rc = {rc:.4g}, "
+                f"{100 * (1 - t / self.t_far):.1f} % less far-field time than the rule's")
 
     def _fits(self):
         """Whether the memory fits this machine's RAM (the minimum: one cached preconditioner)."""
@@ -288,7 +297,7 @@ def estimate(scene, opts=None, near=True, calibration=None):
     threads = _threads()
     t_forces = N * (cal.forces_s[0] + cal.forces_s[1] * p ** 3)
     t_self = mem_self / cal.self_gemv_bytes_per_s
-    chosen = None
+    chosen, ewald_best = None, None
     backend, t_far, eps = "none", 0.0, float(o.get("far_tol") or farmod.DEFAULT_EPS)
     if N > 1 or eff.periodic:          # periodic: a single vesicle sees its images
         chosen = decisions(scene, o, state=state, near_pairs=pairs if near else -1)
@@ -303,8 +312,12 @@ def estimate(scene, opts=None, near=True, calibration=None):
             points = np.concatenate([gq.X.reshape(-1, 3), pts.reshape(-1, 3)])
             smooth = chosen["ewald_own"] == "smooth"
             own_skip = (Mq, float(gq.dA.sum()) / N) if smooth else None
+            period = scene.periodic_length or None
             t_far = farmod.predicted_ewald(points, nsrc, ntrg, 0 if smooth else N * M * Mq, eps, threads,
-                                           scene.periodic_length or None, dl, own_skip, cost=cal.ewald)[0]
+                                           period, dl, own_skip, cost=cal.ewald)[0]
+            best = ewaldmod.choose_params(eps, points, period, nsrc, ntrg, threads, 9 if dl else 3, own_skip, cal.ewald)
+            ewald_best = (best.rc, ewaldmod._predicted(best, nsrc, ntrg, threads, 3, 0 if smooth else N * M * Mq,
+                                                       own_skip, cal.ewald))
     # ewald, own vesicle "smooth": its smooth share removed by per-vesicle operators E_v
     # (vesflow.layerpot.own_smooth): as many entries as the self operators, one more GEMV
     smooth_own = backend == "ewald" and chosen["ewald_own"] == "smooth"
@@ -320,7 +333,7 @@ def estimate(scene, opts=None, near=True, calibration=None):
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
                     solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=threads,
-                    mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen)
+                    mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen, ewald_best=ewald_best)
 
 
 def _threads():

@@ -244,12 +244,14 @@ def _modes(period, kmax):
     return tuple(int(2 * math.ceil(P * kmax / (2 * math.pi))) for P in period)
 
 
-def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, ncomp=3, own_skip=None):
+def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, ncomp=3, own_skip=None, cost=None):
     """Ewald parameters for accuracy ``tol`` (module docstring) over ``points`` (n, 3), the
     sources and targets together; ``period`` None (free space), a number (cube) or 3 numbers.
     ``nsrc``, ``ntrg``: counts for the cost model (default: half the points each);
     ``own_skip`` = (sources per vesicle, mean vesicle area): the real space leaves out every
-    target's own vesicle (``EwaldSum(own="smooth")``), the model counts the other pairs only."""
+    target's own vesicle (``EwaldSum(own="smooth")``), the model counts the other pairs only.
+    ``cost``: other weights than the rule's :data:`COST` (vesflow.costs: this machine's best
+    cutoff, for comparison only; a run always takes the rule's)."""
     if not (1e-15 < tol < 1.0):
         raise SettingsError(f"Ewald accuracy -ves_far_tol must lie in (1e-15, 1), got {tol}")
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -288,7 +290,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
                         lo=tuple(float(x) for x in lo), box=tuple(float(x) for x in box),
                         periodic=period is not None, sigma=float(sigma), w=float(w),
                         nufft_eps=nufft_eps, tol=float(tol))
-        t = p.predicted_seconds(nsrc, ntrg, threads, ncomp, own_skip)
+        t = p.predicted_seconds(nsrc, ntrg, threads, ncomp, own_skip, cost)
         if best is None or t < best[0]:
             best = (t, p)
     if best is None:
