@@ -1,4 +1,4 @@
-"""The cost model's constants (vesflow/costs.py) measured on this machine, one thread.
+"""The cost model's constants (vesflow/calibration.py) measured on this machine, one thread.
 
 For the accuracy-cost study's vesicle (oblate, v = 0.85, two of them in shear) at each degree
 p, after one step has filled the caches:
@@ -11,7 +11,7 @@ p, after one step has filled the caches:
   (far field, and the near correction's kernel);
 
 and prints them next to the model's values, with the fitted power laws the model uses
-(SELF_SETUP_S and PC_SETUP_S: value at p = 16 and exponent in p; FORCE_S: a + b p^3).
+(self_setup_s and pc_setup_s: value at p = 16 and exponent in p; forces_s: a + b p^3).
 Process CPU time, best of --repeat, so that a shared machine disturbs the figures less.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/cost_model.py
@@ -28,9 +28,8 @@ early_environment()
 
 import numpy as np  # noqa: E402
 
-from vesflow import costs, options as optmod, precond, scene as scenemod, study, threads  # noqa: E402
+from vesflow import calibration, costs, options as optmod, precond, scene as scenemod, study, threads  # noqa: E402
 from vesflow._kernels import stokes  # noqa: E402
-from vesflow.layerpot import far as farmod  # noqa: E402
 from vesflow.layerpot.singular import SelfOperators  # noqa: E402
 from vesflow.operator import StepOperator  # noqa: E402
 from vesflow.simulation import Run  # noqa: E402
@@ -108,11 +107,12 @@ def main(argv=None):
         s16, se = fit_power(ps, [r["self"] for r in rows])
         c16, ce = fit_power(ps, [r["pc"] for r in rows])
         b, a0 = np.polyfit(ps ** 3, [r["forces"] for r in rows], 1)
-        print(f"# fitted: SELF_SETUP_S = ({s16:.3g}, {se:.2f})   model {costs.SELF_SETUP_S}")
-        print(f"#         PC_SETUP_S   = ({c16:.3g}, {ce:.2f})   model {costs.PC_SETUP_S}")
-        print(f"#         FORCE_S      = ({a0:.2e}, {b:.2e})   model {costs.FORCE_S}")
-        print(f"#         DIRECT_SECONDS_PER_PAIR = {np.median([r['pair'] for r in rows]):.2e}   "
-              f"model {farmod.DIRECT_SECONDS_PER_PAIR:.2e}")
+        cal = calibration.load()
+        print(f"# fitted: self_setup_s = ({s16:.3g}, {se:.2f})   calibration {cal.self_setup_s}")
+        print(f"#         pc_setup_s   = ({c16:.3g}, {ce:.2f})   calibration {cal.pc_setup_s}")
+        print(f"#         forces_s     = ({a0:.2e}, {b:.2e})   calibration {cal.forces_s}")
+        print(f"#         direct_s_per_pair = {np.median([r['pair'] for r in rows]):.2e}   "
+              f"calibration {cal.direct_s_per_pair:.2e} ({cal.source}; benchmarks/calibrate.py writes it)")
 
 
 if __name__ == "__main__":

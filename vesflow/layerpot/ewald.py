@@ -250,8 +250,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
     ``nsrc``, ``ntrg``: counts for the cost model (default: half the points each);
     ``own_skip`` = (sources per vesicle, mean vesicle area): the real space leaves out every
     target's own vesicle (``EwaldSum(own="smooth")``), the model counts the other pairs only.
-    ``cost``: other weights than the rule's :data:`COST` (vesflow.costs: this machine's best
-    cutoff, for comparison only; a run always takes the rule's)."""
+    ``cost``: weights other than :data:`COST` (vesflow.costs' comparison; a run takes COST's)."""
     if not (1e-15 < tol < 1.0):
         raise SettingsError(f"Ewald accuracy -ves_far_tol must lie in (1e-15, 1), got {tol}")
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
