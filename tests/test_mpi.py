@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from vesflow import shapes, sph
+from vesflow.layerpot import evaluator
 from vesflow.layerpot.evaluator import LayerPotentials, Settings
 from vesflow.operator import VesicleParams
 from vesflow import parallel
@@ -65,7 +66,7 @@ def test_layer_potentials_rows_equal_the_one_process_ones(part, backend, own):
         assert dist.halo.n_received == 1 and dist.halo.n_sent == 1
     # near pairs whose source vesicle lives on the other rank
     other = np.setdiff1d(np.arange(3), part.idx)
-    assert np.isin(dist.near["pairs"][:, 1], other).any()
+    assert np.isin(dist.near.pairs[:, 1], other).any()
     rng = np.random.default_rng(1)
     C = sph.n_coeffs(P)
     f, g = rng.standard_normal((3, 3, C)), rng.standard_normal((3, 3, C))
@@ -169,7 +170,7 @@ def test_a_missing_near_zone_surface_changes_the_rows(part, monkeypatch):
     S = Surface(coeffs(), P)
     st = Settings(backend="direct")
     serial = LayerPotentials(S, lam=LAM, settings=st)
-    monkeypatch.setattr(parallel, "Halo", NoHalo)
+    monkeypatch.setattr(evaluator, "Halo", NoHalo)
     dist = LayerPotentials(S, lam=LAM, settings=st, part=part)
     assert dist.halo.n_received == 0 and dist.n_near_pairs_total < serial.n_near_pairs
     rng = np.random.default_rng(1)

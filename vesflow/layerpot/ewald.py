@@ -408,15 +408,19 @@ class EwaldSum:
         s01[s01 >= 2 * math.pi] = 0.0
         t01[t01 >= 2 * math.pi] = 0.0
         self._nufft = Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
-        # spread = (partition, this rank's source indices): the type-1 transform of this rank's
-        # sources only, the mode grid summed over the ranks (Allreduce), the rest replicated
-        # (docs/parallel.md: one node, the grid is small next to the far-field work)
+        # spread = (partition, this rank's source indices or slice): the type-1 transform of
+        # this rank's sources only, the mode grid summed over the ranks (Allreduce), the rest
+        # replicated (docs/parallel.md: one node, the grid is small next to the far-field work);
+        # a rank that holds no other rank's sources (one process) spreads with the plan above
         self._spread = None
         if spread is not None:
             part, mine = spread
-            mine = np.asarray(mine, dtype=np.int64)
-            self._spread = (part, mine, Nufft(nufft, p.modes, np.ascontiguousarray(s01[mine]), t01,
-                                                p.nufft_eps, self.threads))
+            mine = np.arange(self.src.shape[0])[mine]
+            if np.array_equal(mine, np.arange(self.src.shape[0])):
+                self._spread = (part, None, self._nufft)
+            else:
+                self._spread = (part, mine, Nufft(nufft, p.modes, np.ascontiguousarray(s01[mine]), t01,
+                                                  p.nufft_eps, self.threads))
         self._psi = kernel_psi(p, self.threads)
         self._k = kvectors(p)
         self._real = None            # cell lists of the real-space part, built at the first evaluation
@@ -466,11 +470,12 @@ class EwaldSum:
         c.real = real[0::2]
         c.imag[:m // 2] = real[1::2]
         del real
+        P = self._buffer("P", (c.shape[0],) + tuple(self.params.modes))
         if self._spread is None:
-            P = self._nufft.type1(c, out=self._buffer("P", (c.shape[0],) + tuple(self.params.modes)))
+            P = self._nufft.type1(c, out=P)
         else:
             part, mine, nufft = self._spread
-            P = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
+            P = part.allreduce_inplace(nufft.type1(c if mine is None else np.ascontiguousarray(c[:, mine]), out=P))
         del c
         P = P.reshape((-1,) + tuple(self.params.modes))
         W = self._buffer("W", (2,) + P.shape[1:])
