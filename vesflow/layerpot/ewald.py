@@ -63,6 +63,7 @@ from vesflow._kernels import stokes as _stokes
 from vesflow.errors import SceneError
 
 from .ewald_fourier import NUFFT_LIBS, Nufft, kernel_psi, kvectors, sym6
+from .groups import group_by_vesicle
 
 # margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
 # relative error stays below tol for 1e-4 .. 1e-10 (tests/test_ewald.py)
@@ -367,25 +368,13 @@ class EwaldSum:
                 raise SceneError("the Ewald far field needs finufft or ducc0 (pip install finufft)")
         self.nufft_lib = nufft
         # sources sorted by vesicle id; index of each target's own vesicle (-1: none)
-        sid = self.src_id
-        self._perm = None
-        if sid.size and np.any(sid[1:] < sid[:-1]):
-            self._perm = np.argsort(sid, kind="stable")
-            sid = sid[self._perm]
-        self._src_sorted = self.src if self._perm is None else np.ascontiguousarray(self.src[self._perm])
-        self._sid_sorted = np.ascontiguousarray(sid)
-        ids, starts = np.unique(sid, return_index=True)
-        self._src_off = np.append(starts, sid.size).astype(np.int64)
-        trg_vi = np.full(self.trg.shape[0], -1, dtype=np.int64)
-        if ids.size:
-            vi = np.minimum(np.searchsorted(ids, self.trg_id), ids.size - 1)
-            trg_vi = np.where(ids[vi] == self.trg_id, vi, -1).astype(np.int64)
-        self._trg_vi = trg_vi
+        self._groups = grp = group_by_vesicle(self.src, self.src_id, self.trg_id)
+        ids, trg_vi = grp.ids, grp.trg_vi
         if own == "smooth" and p.periodic:
             ext = np.zeros((ids.size, 3))
             if ids.size:
-                pts = np.concatenate([self._src_sorted, self.trg[trg_vi >= 0]])
-                vix = np.concatenate([np.repeat(np.arange(ids.size), np.diff(self._src_off)), trg_vi[trg_vi >= 0]])
+                pts = np.concatenate([grp.src, self.trg[trg_vi >= 0]])
+                vix = np.concatenate([np.repeat(np.arange(ids.size), np.diff(grp.off)), trg_vi[trg_vi >= 0]])
                 hi = np.full((ids.size, 3), -np.inf)
                 lo_ = np.full((ids.size, 3), np.inf)
                 np.maximum.at(hi, vix, pts)
@@ -434,23 +423,20 @@ class EwaldSum:
             self._buffers[name] = b = np.empty(shape, dtype=np.complex128)
         return b
 
-    def _sorted(self, a):
-        return a if self._perm is None else np.ascontiguousarray(a[self._perm])
-
     def real_space(self, f_w=None, nw=None, g=None):
         """Real-space part (own="subtract": incl. the own-vesicle subtraction; "smooth": the
         own vesicle left out), (T, 3)."""
         p = self.params
         out = np.zeros((self.trg.shape[0], 3))
         empty = np.zeros((0, 3))
-        f = empty if f_w is None else self._sorted(np.ascontiguousarray(f_w, dtype=np.float64))
-        n_ = empty if g is None else self._sorted(np.ascontiguousarray(nw, dtype=np.float64))
-        g_ = empty if g is None else self._sorted(np.ascontiguousarray(g, dtype=np.float64))
+        f = empty if f_w is None else self._groups.sorted(np.ascontiguousarray(f_w, dtype=np.float64))
+        n_ = empty if g is None else self._groups.sorted(np.ascontiguousarray(nw, dtype=np.float64))
+        g_ = empty if g is None else self._groups.sorted(np.ascontiguousarray(g, dtype=np.float64))
         if self._real is None:
             box = p.period if p.periodic else tuple(np.asarray(p.box) * (1 + 1e-12) + 1e-300)
-            self._real = _kernels.RealSpace(self._src_sorted, self._sid_sorted, self._src_off, self.trg,
-                                            self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box, bool(p.periodic),
-                                            self.own == "smooth")
+            grp = self._groups
+            self._real = _kernels.RealSpace(grp.src, grp.sid, grp.off, self.trg, self.trg_id, grp.trg_vi, p.xi, p.rc,
+                                            p.lo, box, bool(p.periodic), self.own == "smooth")
         self._real.apply(f, n_, g_, out)
         return out
 
