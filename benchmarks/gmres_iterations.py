@@ -212,7 +212,7 @@ def main(argv=None):
                 op.apply(x0)
             mv = tuple(t / 3 for t in clk.read())
             mv_time[(n, p)] = mv
-            npairs = 0 if lp.near is None else len(lp.near["pairs"])
+            npairs = 0 if lp.near is None else len(lp.near.pairs)
             backend = "none (one vesicle)" if lp.far is None else lp.far.backend
             C = sph.n_coeffs(p)
             gaps = _min_gap(S) if n > 1 else float("nan")

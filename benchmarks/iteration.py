@@ -33,12 +33,14 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from vesflow import shapes  # noqa: E402
 from vesflow.layerpot.evaluator import LayerPotentials, Settings  # noqa: E402
 from vesflow.surface import Surface  # noqa: E402
+from vesflow.timing import Timers  # noqa: E402
 
 
-class CpuTimers:
-    """start/stop pairs as vesflow.timing.Timers, recording (wall, process CPU) per name."""
+class CpuTimers(Timers):
+    """vesflow.timing.Timers recording (wall, process CPU) per name."""
 
     def __init__(self):
+        super().__init__(use_petsc=False)
         self.t = {}
         self._t0 = {}
 
@@ -85,7 +87,7 @@ def main(argv=None):
     lp.apply(f)                                  # first apply: cell lists, NUFFT plans
     sw, sc = time.perf_counter() - w0, time.process_time() - c0
     pr = lp.far.ewald.params
-    npairs = len(lp.near["pairs"]) if lp.near and "pairs" in lp.near else 0
+    npairs = lp.n_near_pairs
     own = f", own smooth operators {tm.t['own_setup'][1]:.1f} s CPU" if "own_setup" in tm.t else ""
     print(f"# set-up incl. first apply {sw:.1f} / {sc:.1f} s (self operators {tm.t['self_setup'][1]:.1f} s CPU{own}); "
           f"{npairs} near pairs; ewald xi {pr.xi:.2f} rc {pr.rc:.2f} modes {pr.modes}", flush=True)

@@ -54,8 +54,8 @@ def cost(grids):
 def line_changes(lp, surf, info, f, g, lam, schemes):
     """Per scheme: sum_l w_l (line value on its grid - line value on the q grid), per pair (P, 3)."""
     N = surf.n_vesicles
-    pts = info["blocks"][:, 1:]                                          # (pairs, L, 3)
-    rows = info["block_ves"]
+    pts = info.blocks[:, 1:]                                             # (pairs, L, 3)
+    rows = info.rows
     values = {}
     for q in sorted(set(sum(schemes.values(), []))):
         geo, T = surf.geometry(q), sph.transform(P, q)
@@ -71,7 +71,7 @@ def line_changes(lp, surf, info, f, g, lam, schemes):
             stokes.stresslet_sum_blocks(src_p, stokes.planar(nw, off), stokes.planar(gq, off), off,
                                         np.ascontiguousarray(pts), rows, out)
         values[q] = out
-    w = info["weights"][:, 1:]
+    w = info.weights[:, 1:]
     res = {}
     for name, grids in schemes.items():
         lv = np.stack([values[q][:, l] for l, q in enumerate(grids)], axis=1)
@@ -100,7 +100,7 @@ def identity(schemes):
             errs = []
             for name in schemes:
                 v = u.copy()
-                np.add.at(v, info["pairs"][:, 0], ch[name])
+                np.add.at(v, info.pairs[:, 0], ch[name])
                 errs.append(np.abs(v).max())
             print(f"| {shape} | {dist:g} | " + " | ".join(f"{e:.1e}" for e in errs) + " |", flush=True)
 
@@ -137,9 +137,9 @@ def lattice(a, schemes):
     lam = np.full(N, 0.3 if double else 1.0)
     lps = {q: LayerPotentials(surf, lam=lam, settings=Settings(backend="direct", q_far=q)) for q in (Q, 64, 96)}
     info = lps[Q].near
-    near_t = np.unique(info["pairs"][:, 0])
+    near_t = np.unique(info.pairs[:, 0])
     what = f"biconcave pair, gap {a.biconcave_gap}" if a.biconcave_gap else f"8 spheres, spacing {a.spacing}"
-    print(f"{what}: {len(info['pairs'])} near pairs, {'single and double layer' if double else 'single layer'}")
+    print(f"{what}: {len(info.pairs)} near pairs, {'single and double layer' if double else 'single layer'}")
     print("| density | q = 32 error vs 96 | q = 64 vs 96 | " + " | ".join(f"{k} ({cost(v):.2f})" for k, v in schemes.items())
           + " |")
     print("|---" * (3 + len(schemes)) + "|")
@@ -159,7 +159,7 @@ def lattice(a, schemes):
         cells = []
         for name in schemes:
             v = u[Q].copy()
-            np.add.at(v, info["pairs"][:, 0], ch[name])
+            np.add.at(v, info.pairs[:, 0], ch[name])
             cells.append(f"{err(v):.2e} (change {np.abs(v - u[Q]).max() / scale:.0e})")
         print(f"| {kind} | {err(u[Q]):.2e} | {err(u[64]):.2e} | " + " | ".join(cells) + " |", flush=True)
 

@@ -102,7 +102,7 @@ def main(argv=None):
             lp = LayerPotentials(surf, settings=Settings(backend="ewald", fmm_eps=tol, period=period, q_far=q))
             u = lp.Tp.synth(lp.apply(f))
             u_int = u - lp.Tp.synth(lp.self_part(f, None))
-            npairs = len(lp.near["pairs"]) if lp.near and "pairs" in lp.near else 0
+            npairs = lp.n_near_pairs
             vals[q] = (u, u_int, npairs, time.process_time() - c0)
         u_ref, ui_ref = vals[a.ref][:2]
         for q in a.qs + [a.ref]:

@@ -66,7 +66,7 @@ def test_layer_potentials_rows_equal_the_one_process_ones(part, backend, own):
         assert dist.halo.n_received == 1 and dist.halo.n_sent == 1
     # near pairs whose source vesicle lives on the other rank
     other = np.setdiff1d(np.arange(3), part.idx)
-    assert np.isin(dist.near["pairs"][:, 1], other).any()
+    assert np.isin(dist.near.pairs[:, 1], other).any()
     rng = np.random.default_rng(1)
     C = sph.n_coeffs(P)
     f, g = rng.standard_normal((3, 3, C)), rng.standard_normal((3, 3, C))

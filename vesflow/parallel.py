@@ -19,7 +19,9 @@ the run (or of a restart) and cut into contiguous blocks of equal point count (a
 have the same p: equal vesicle counts, the first N mod size ranks one more).  The partition is
 static over a run: vesicles that move apart keep their rank (no repartitioning).
 
-With one process nothing here is used (`make_partition` returns None): no gathers.
+A serial run is the one-rank case (`Partition.single`: one rank owns every vesicle, in scene
+order; its halo is empty and its collectives return their argument), so that the layer
+potentials take one code path whatever the number of processes.
 """
 from __future__ import annotations
 
@@ -63,16 +65,22 @@ class Partition:
     """Which vesicles each rank owns, and the collectives over them.
 
     order: all vesicle indices, rank 0's first (Morton order); starts: offsets of each rank's
-    block in order; idx: this rank's vesicles (global indices, in Morton order)."""
+    block in order; idx: this rank's vesicles (global indices, in Morton order).  comm None:
+    one process (`single`), the collectives return their argument."""
 
     def __init__(self, comm, order, starts):
-        self.comm = comm                          # an mpi4py communicator
-        self.rank, self.size = comm.Get_rank(), comm.Get_size()
+        self.comm = comm                          # an mpi4py communicator, or None: one process
+        self.rank, self.size = (0, 1) if comm is None else (comm.Get_rank(), comm.Get_size())
         self.order = np.asarray(order, dtype=np.int64)
         self.starts = np.asarray(starts, dtype=np.int64)
         self.counts = np.diff(self.starts)
         self.idx = self.order[self.starts[self.rank]:self.starts[self.rank + 1]]
         self.n_total = len(self.order)
+
+    @classmethod
+    def single(cls, n):
+        """The partition of a serial run: one process owns all n vesicles, in scene order."""
+        return cls(None, np.arange(n, dtype=np.int64), np.array([0, n], dtype=np.int64))
 
     @property
     def n_local(self):
@@ -80,10 +88,13 @@ class Partition:
 
     def gather(self, local):
         """Allgatherv of per-vesicle arrays (n_local, ...) into (N, ...) in scene order."""
-        from mpi4py import MPI
         local = np.ascontiguousarray(local, dtype=np.float64)
-        item = int(np.prod(local.shape[1:], dtype=np.int64))
         out = np.empty((self.n_total,) + local.shape[1:])
+        if self.comm is None:
+            out[self.order] = local
+            return out
+        from mpi4py import MPI
+        item = int(np.prod(local.shape[1:], dtype=np.int64))
         recv = np.empty(self.n_total * item)
         self.comm.Allgatherv(local.reshape(-1), [recv, self.counts * item, self.starts[:-1] * item, MPI.DOUBLE])
         out[self.order] = recv.reshape((self.n_total,) + local.shape[1:])
@@ -105,11 +116,14 @@ class Partition:
         ...): each block (a float64 array, `lengths[r]` numbers on rank r) is passed to rank + 1
         and received from rank - 1, size - 1 times; the transfer of the next block is posted
         before fn works on the current one (overlap).  Memory: two buffers of the largest block."""
-        from mpi4py import MPI
         lengths = np.asarray(lengths, dtype=np.int64)
         block = np.ascontiguousarray(block, dtype=np.float64).reshape(-1)
         if block.size != lengths[self.rank]:
             raise ValueError(f"ring: this rank's block has {block.size} numbers, lengths says {lengths[self.rank]}")
+        if self.size == 1:
+            fn(block, self.rank)
+            return
+        from mpi4py import MPI
         bufs = [np.empty(int(lengths.max())), np.empty(int(lengths.max()))]
         owner = self.rank
         cur = bufs[0][:block.size]
@@ -128,21 +142,42 @@ class Partition:
                 cur, owner = nxt, nxt_owner
 
     def max(self, x):
+        if self.comm is None:
+            return float(x)
         from mpi4py import MPI
         return float(self.comm.allreduce(float(x), op=MPI.MAX))
 
     def sum(self, x):
-        return self.comm.allreduce(x)
+        return x if self.comm is None else self.comm.allreduce(x)
 
     def any(self, flag):
+        if self.comm is None:
+            return bool(flag)
         from mpi4py import MPI
         return bool(self.comm.allreduce(bool(flag), op=MPI.LOR))
 
     def allreduce_inplace(self, a):
         """Sum of the array a over the ranks, in place."""
+        if self.comm is None:
+            return a
         from mpi4py import MPI
         self.comm.Allreduce(MPI.IN_PLACE, a, op=MPI.SUM)
         return a
+
+    def alltoall(self, items):
+        """Item r of `items` to rank r; returns the items each rank sent here (mpi4py alltoall)."""
+        return list(items) if self.comm is None else self.comm.alltoall(items)
+
+    def alltoallv(self, send, send_counts, recv, recv_counts):
+        """Alltoallv of float64 rows: send_counts[r] numbers of `send` (in rank order) to rank r,
+        recv_counts[r] numbers into `recv` from rank r."""
+        sd = np.concatenate([[0], np.cumsum(send_counts)[:-1]])
+        rd = np.concatenate([[0], np.cumsum(recv_counts)[:-1]])
+        if self.comm is None:
+            recv[:] = send
+            return
+        from mpi4py import MPI
+        self.comm.Alltoallv([send, send_counts, sd, MPI.DOUBLE], [recv, recv_counts, rd, MPI.DOUBLE])
 
     def describe(self):
         return (f"{self.size} ranks, vesicles per rank {self.counts.min()}..{self.counts.max()} "
@@ -201,7 +236,7 @@ class Halo:
         self.distance = float(distance)
         self.need = need                                    # increasing ids
         need_from = [need[owner[need] == r] for r in range(part.size)]
-        send_to = part.comm.alltoall(need_from)             # my vesicles each rank needs
+        send_to = part.alltoall(need_from)                  # my vesicles each rank needs
         self.known = np.union1d(part.idx, need).astype(np.int64)
         pos_local = {int(v): k for k, v in enumerate(part.idx)}
         self._send_rows = np.array([pos_local[int(v)] for lst in send_to for v in lst], dtype=np.int64)
@@ -211,6 +246,8 @@ class Halo:
         self._recv_pos = np.searchsorted(self.known, recv_ids)
         self._own_pos = np.searchsorted(self.known, part.idx)
         self.n_sent = int(self._send_counts.sum())
+        # one process owning its vesicles in id order: its rows are already those of `known`
+        self._as_is = part.size == 1 and np.array_equal(self._own_pos, np.arange(len(self._own_pos)))
 
     @property
     def n_received(self):
@@ -222,22 +259,32 @@ class Halo:
 
     def exchange(self, local):
         """Per-vesicle rows (n_local, ...) of this rank's vesicles (part.idx order) -> rows
-        (len(known), ...) of `known`: one Alltoallv, non-zero counts between neighbours only."""
-        from mpi4py import MPI
+        (len(known), ...) of `known`: one Alltoallv, non-zero counts between neighbours only
+        (one process: `local` itself, no copy)."""
         local = np.ascontiguousarray(local, dtype=np.float64)
+        if self._as_is:
+            return local
         shape = local.shape[1:]
         item = int(np.prod(shape, dtype=np.int64))
         flat = local.reshape(len(local), item)
         send = np.ascontiguousarray(flat[self._send_rows])
         recv = np.empty((len(self._recv_pos), item))
-        sc, rc = self._send_counts * item, self._recv_counts * item
-        sd = np.concatenate([[0], np.cumsum(sc)[:-1]])
-        rd = np.concatenate([[0], np.cumsum(rc)[:-1]])
-        self.part.comm.Alltoallv([send, sc, sd, MPI.DOUBLE], [recv, rc, rd, MPI.DOUBLE])
+        self.part.alltoallv(send, self._send_counts * item, recv, self._recv_counts * item)
         out = np.empty((len(self.known), item))
         out[self._own_pos] = flat
         out[self._recv_pos] = recv
         return out.reshape((len(self.known),) + shape)
+
+    def exchange_rows(self, *arrays):
+        """`exchange` of several per-vesicle arrays (n_local, ...) in one message: a list of
+        their rows of `known`, each array in its own shape."""
+        arrays = [np.ascontiguousarray(a, dtype=np.float64) for a in arrays]
+        if self._as_is:
+            return arrays
+        n = len(self.part.idx)
+        cols = np.cumsum([int(np.prod(a.shape[1:], dtype=np.int64)) for a in arrays])[:-1]
+        rows = np.split(self.exchange(np.concatenate([a.reshape(n, -1) for a in arrays], axis=1)), cols, axis=1)
+        return [r.reshape((len(self.known),) + a.shape[1:]) for r, a in zip(rows, arrays)]
 
 
 def world_comm():
@@ -253,11 +300,11 @@ def world_size():
 
 def make_partition(centroids, points_per_vesicle=None, comm=None):
     """The Partition of vesicles with these centroids (N, 3) over comm (default COMM_WORLD);
-    None with one process."""
+    with one process `Partition.single` (scene order)."""
     comm = world_comm() if comm is None else comm
-    if comm.Get_size() == 1:
-        return None
     c = np.asarray(centroids, dtype=float).reshape(-1, 3)
+    if comm.Get_size() == 1:
+        return Partition.single(len(c))
     if len(c) < comm.Get_size():
         raise SceneError(f"{comm.Get_size()} MPI processes for {len(c)} vesicles: each rank needs at least one "
                          f"vesicle; run at most {len(c)} processes")

@@ -28,8 +28,6 @@ solution keeps double's accuracy (docs/parallel.md).
 """
 from __future__ import annotations
 
-import contextlib
-
 import numpy as np
 from scipy.linalg import lu_factor, lu_solve
 
@@ -40,6 +38,7 @@ from .options import parse_value
 from .shapes import make_shape
 from .surface import Surface
 from .threads import map_vesicles
+from .timing import NullTimers
 
 REFRESH_FACTOR, REFRESH_SLACK = 3.0, 5
 DT_MATCH = 1.25
@@ -109,8 +108,7 @@ class _PerVesicle:
         fresh_geometry = self.parts_lp is not op.lp
         if (self.parts is None or key != self.parts_key or self.stale
                 or (fresh_geometry and self.uses >= self._max_uses())):
-            timers = getattr(op.lp, "timers", None) or _NoTimers()
-            with timers.stage("pc_blocks"):
+            with op.lp.timers.stage("pc_blocks"):
                 self.parts = self.block_parts(op)
             self.parts_key, self.parts_lp = key, op.lp
             self.factors, self.base_its, self.uses, self.stale = [], None, 0, False
@@ -138,8 +136,7 @@ class _PerVesicle:
         for dt_f, lu in self.factors:
             if (dt_f == dt) or (dt_f > 0 and dt > 0 and max(dt / dt_f, dt_f / dt) <= DT_MATCH):
                 return lu
-        timers = getattr(op.lp, "timers", None) or _NoTimers()
-        with timers.stage("pc_lu"):
+        with op.lp.timers.stage("pc_lu"):
             dtype = self.dtype
             lu = map_vesicles(lambda k: lu_factor(self.finish_block(block_at(*self.parts[k], dt), op).astype(dtype, copy=False),
                                                   check_finite=False), range(len(self.parts)), op.p)
@@ -265,9 +262,4 @@ class _SelfOnly:
 
     def __init__(self, self_ops, want_double, lam):
         self.self_ops, self.want_double, self.lam = self_ops, want_double, lam
-        self.timers = None
-
-
-class _NoTimers:
-    def stage(self, name):
-        return contextlib.nullcontext()
+        self.timers = NullTimers()

@@ -24,10 +24,10 @@ FLOOR = 1e-3          # |d| is floored at FLOOR * R
 
 
 def _projection(lp):
-    near = getattr(lp, "near", None)
-    if near is None or "projection" not in near or not len(near["pairs"]):
+    near = lp.near                   # vesflow.layerpot.near.NearPairs, None without near pairs
+    if near is None or not len(near.pairs):
         return None, None
-    return near["pairs"], near["projection"]
+    return near.pairs, near.projection
 
 
 def repulsion_force(surface, lp, radius, q_force):
@@ -44,10 +44,8 @@ def repulsion_force(surface, lp, radius, q_force):
     if pairs is None or radius <= 0:
         return out
     R = float(radius)
-    near = lp.near
     # the target's image nearest the other vesicle (periodic; the target itself in free space)
-    x = near["tpos"] if "tpos" in near else surface.points().reshape(-1, 3)[pairs[:, 0]]
-    d = x - proj.point
+    d = lp.near.tpos - proj.point
     dist = np.linalg.norm(d, axis=1)
     hit = dist < CUTOFF * R
     if not hit.any():

@@ -21,6 +21,8 @@ DETAIL = tuple(ALIASES)
 
 
 class Timers:
+    """Stage times (STAGES columns, DETAIL stages) and counts; ``with timers.stage(name):``."""
+
     def __init__(self, use_petsc=True):
         self.total = {s: 0.0 for s in STAGES}
         self.detail = {s: 0.0 for s in DETAIL}
@@ -67,6 +69,23 @@ class Timers:
         d = dict(self.total)
         d["total"] = sum(self.total.values())
         return d
+
+
+class NullTimers(Timers):
+    """Timers that record nothing: for the layer potentials, preconditioner blocks and
+    benchmarks run without a stepper's timers."""
+
+    def __init__(self):
+        super().__init__(use_petsc=False)
+
+    def start(self, name):
+        pass
+
+    def stop(self, name):
+        pass
+
+    def count(self, name):
+        pass
 
 
 class _Stage:

@@ -13,6 +13,11 @@ interpolation weights, the far field's own smooth operators (Ewald).  `apply` is
 
 Densities and results are degree-p coefficients (N, 3, C).  The double-layer density g is
 scaled by (1 - lambda_j) here; the caller passes the plain velocity.
+
+Over MPI ranks (vesflow.parallel) each rank's vesicles are the targets and the sources it holds
+are its own and those of the other ranks' vesicles within its near zone or Ewald cutoff (a
+Halo, exchanged once in the set-up and once per application); a serial run is the one-rank
+partition (Partition.single, whose halo is empty), the same code.
 """
 from __future__ import annotations
 
@@ -20,8 +25,9 @@ import numpy as np
 
 from .. import sph
 from .._kernels import stokes
-from ..parallel import Halo, vesicle_boxes
+from ..parallel import Halo, Partition, vesicle_boxes
 from ..surface import Surface
+from ..timing import NullTimers
 from . import near as nearmod
 from .ewald import OWN_MODES, own_extent_ok
 from .far import FarField, predicted_ewald, resolve_backend
@@ -80,49 +86,35 @@ class LayerPotentials:
     """Setup once per step for a Surface; apply many times (see module docstring)."""
 
     def __init__(self, surface, lam=1.0, viscosity=1.0, settings=None, want_double=None, timers=None, part=None):
-        """surface: all vesicles.  part (vesflow.parallel.Partition, None with one process):
-        only this rank's vesicles are targets and have self operators (`local`, `idx`); this
-        rank holds the sources of its vesicles and of the other ranks' vesicles within its near
-        zone (or Ewald cutoff), `known` (vesflow.parallel.Halo); the direct far field passes
-        the other ranks' sources around the ring of ranks."""
+        """surface: all vesicles.  part (vesflow.parallel.Partition; default Partition.single, a
+        serial run): only this rank's vesicles are targets and have self operators (`local`,
+        `idx`); this rank holds the sources of its vesicles and of the other ranks' vesicles
+        within its near zone (or Ewald cutoff), `known` (vesflow.parallel.Halo); the direct far
+        field passes the other ranks' sources around the ring of ranks.  timers: the stages'
+        vesflow.timing.Timers (default NullTimers)."""
         s = settings or Settings()
         p = surface.p
-        self.part = part
         self.N_total = surface.n_vesicles
-        lam_all = np.broadcast_to(np.asarray(lam, dtype=float), (self.N_total,)).copy()
-        if part is None:
-            self.idx = np.arange(self.N_total)
-            self.local = surface
-        else:
-            self.idx = part.idx
-            self.local = Surface(surface.coeffs[part.idx], p)
+        self.part = Partition.single(self.N_total) if part is None else part
+        self.idx = self.part.idx
+        self.local = _vesicles(surface, self.idx)
         self.p, self.N = p, self.local.n_vesicles
         self.q_self = s.q_self or 2 * p
         self.q_far = s.q_far or 2 * p
         self.mu = float(viscosity)
-        self.lam_all = lam_all
-        self.lam = lam_all[self.idx] if part is not None else lam_all
-        self.want_double = bool(np.any(lam_all != 1.0)) if want_double is None else bool(want_double)
+        self.lam_all = np.broadcast_to(np.asarray(lam, dtype=float), (self.N_total,)).copy()
+        self.lam = self.lam_all[self.idx]
+        self.want_double = bool(np.any(self.lam_all != 1.0)) if want_double is None else bool(want_double)
         self.settings = s
         self.surface = surface
-        self.timers = timers
-        with _timed(timers, "self_setup"):
+        self.timers = NullTimers() if timers is None else timers
+        with self.timers.stage("self_setup"):
             self.self_ops = SelfOperators(self.local.coeffs, p, self.q_self, True, self.want_double, self.mu,
                                           dtype=s.self_dtype)
-        # far-field sources: the upsampled grid with its quadrature weights (rows of `known`)
         gq = self.local.geometry(self.q_far)
         self.Tq = sph.transform(p, self.q_far)
-        mq = self.Tq.npts
         self.Tp = sph.transform(p)
-        self.halo = None
-        if part is None:
-            self.known = np.arange(self.N_total, dtype=np.int64)
-            self.src = np.ascontiguousarray(gq.X.reshape(-1, 3))
-            self.src_w = gq.dA.reshape(-1)
-            self.src_nw = np.ascontiguousarray((gq.normal * gq.dA[..., None]).reshape(-1, 3))
-            self.h = nearmod.near_distance(surface.area(), self.q_far, s.near_factor)
-        else:
-            self.src_w_local = gq.dA.reshape(-1)
+        self.src_w_local = gq.dA.reshape(-1)       # quadrature weights of this rank's q-grid points
         # own targets: the p-grid
         self.trg = np.ascontiguousarray(self.local.points().reshape(-1, 3))
         self.trg_id = np.repeat(np.asarray(self.idx, dtype=np.int64), self.Tp.npts)
@@ -131,31 +123,20 @@ class LayerPotentials:
         self.own_ops = None
         self.own_auto = None          # ewald_own "auto": the cost model's figures of the choice
         self.far_own = self._far_own_mode(gq)
-        if part is not None:
-            far_args = self._halo_setup(gq)
-        self.src_id = np.repeat(self.known, mq)
-        self.src_off = np.arange(len(self.known) + 1, dtype=np.int64) * mq
-        # the near blocks read the sources planar, x/y/z runs per vesicle (stokes.planar)
-        self.src_planar = stokes.planar(self.src, self.src_off)
-        self.src_nw_planar = stokes.planar(self.src_nw, self.src_off)
+        backend, params = self._sources(gq)
         if self.N_total > 1 or s.period:    # periodic: a single vesicle sees its images
-            with _timed(timers, "near_setup"):
+            with self.timers.stage("near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
-            with _timed(timers, "far_setup"):
-                if part is None:
-                    self.far = FarField(self.src, self.src_id, self.trg, self.trg_id, backend=s.backend,
-                                        eps=s.fmm_eps, period=s.period, double_layer=self.want_double,
-                                        own=self.far_own, own_skip=self._own_skip)
-                else:
-                    self.far = self._far_partitioned(*far_args)
+            with self.timers.stage("far_setup"):
+                self.far = self._far_field(backend, params)
             if self.far.smooth_own:
-                with _timed(timers, "own_setup"):
-                    n, mp = self.N, self.Tp.npts
+                with self.timers.stage("own_setup"):
+                    n, mp, mq = self.N, self.Tp.npts, self.Tq.npts
                     self.own_ops = OwnSmoothOperators(
                         self.trg.reshape(n, mp, 3), gq.X.reshape(n, mq, 3), gq.dA.reshape(n, mq),
                         (gq.normal * gq.dA[..., None]).reshape(n, mq, 3), self.far.ewald.params.xi, p,
                         self.q_far, True, self.want_double, self.mu, dtype=self._own_dtype())
-        self.n_near_pairs_total = (self.n_near_pairs if part is None else int(part.sum(self.n_near_pairs)))
+        self.n_near_pairs_total = int(self.part.sum(self.n_near_pairs))
 
     def _far_own_mode(self, gq):
         """The Ewald sum's own mode (Settings.ewald_own): "smooth" unless a vesicle is so large
@@ -165,8 +146,7 @@ class LayerPotentials:
         the cost model."""
         s = self.settings
         area = gq.dA.reshape(self.N, -1).sum(axis=1)
-        tot = float(area.sum()) if self.part is None else self.part.sum(float(area.sum()))
-        self._own_skip = (self.Tq.npts, tot / max(self.N_total, 1))
+        self._own_skip = (self.Tq.npts, self.part.sum(float(area.sum())) / max(self.N_total, 1))
         mode = s.ewald_own
         if mode == "auto":
             mode = self._own_auto(gq)
@@ -174,8 +154,7 @@ class LayerPotentials:
             return mode
         pts = np.concatenate([gq.X.reshape(self.N, -1, 3), self.local.points().reshape(self.N, -1, 3)], axis=1)
         ext = (pts.max(axis=1) - pts.min(axis=1)).max(axis=0, initial=0.0)
-        if self.part is not None:
-            ext = np.array([self.part.max(float(e)) for e in ext])
+        ext = np.array([self.part.max(float(e)) for e in ext])
         L = np.broadcast_to(np.asarray(s.period, dtype=float), (3,))
         return "smooth" if own_extent_ok(ext, 0.49 * float(L.min()), s.period) else "subtract"
 
@@ -198,10 +177,7 @@ class LayerPotentials:
         s, N, mq, mp = self.settings, self.N_total, self.Tq.npts, self.Tp.npts
         lo = gq.X.reshape(-1, 3).min(axis=0) if gq.X.size else np.zeros(3)
         hi = gq.X.reshape(-1, 3).max(axis=0) if gq.X.size else np.zeros(3)
-        if self.part is not None:
-            lo = np.array([-self.part.max(float(-x)) for x in lo])
-            hi = np.array([self.part.max(float(x)) for x in hi])
-        corners = np.stack([lo, hi])
+        corners = np.stack([[-self.part.max(float(-x)) for x in lo], [self.part.max(float(x)) for x in hi]])
         nsrc, ntrg = N * mq, N * mp
         try:
             t_sub, _ = predicted_ewald(corners, nsrc, ntrg, N * mp * mq, s.fmm_eps, threads=1, period=s.period,
@@ -218,14 +194,15 @@ class LayerPotentials:
         self.own_auto = {"saving": saving, "setup": setup, "applies": s.applies_per_setup}
         return "smooth" if saving * s.applies_per_setup > setup else "subtract"
 
-    def _halo_setup(self, gq):
-        """With a partition: the far-field backend (and Ewald parameters) for the whole problem,
-        so that every rank and a one-process run take the same, from the gathered bounding boxes
-        of the vesicles; then the surfaces this rank needs (vesflow.parallel.Halo): those within
-        the near zone h_n of one of its vesicles, within the Ewald real-space cutoff (ewald),
-        all (fmm: the FMM sums over gathered sources).  Returns (backend, Ewald parameters)."""
+    def _sources(self, gq):
+        """The far-field backend (and Ewald parameters) for the whole problem, from the gathered
+        bounding boxes of the vesicles, so that every rank and a serial run take the same; then
+        the sources this rank holds (vesflow.parallel.Halo, `known`): its own vesicles and those
+        within the near zone h_n of one of them, within the Ewald real-space cutoff (ewald), all
+        (fmm: the FMM sums over gathered sources), with their q-grid points, normals times
+        weights and weights.  Returns (backend, Ewald parameters or None)."""
         part, s, N, mq, mp = self.part, self.settings, self.N_total, self.Tq.npts, self.Tp.npts
-        with _timed(self.timers, "gather"):
+        with self.timers.stage("gather"):
             boxes = part.gather(vesicle_boxes(gq.X, self.local.points()))
             area_max = part.max(float(self.local.area().max()))
         self.h = nearmod.near_distance(np.full(N, area_max), self.q_far, s.near_factor)
@@ -240,104 +217,92 @@ class LayerPotentials:
             distance = max(distance, params.rc * (1.0 + 1e-6))
         elif backend == "fmm":
             distance = np.inf
-        with _timed(self.timers, "gather"):
+        with self.timers.stage("gather"):
             self.halo = Halo(part, boxes, distance, s.period)
             self.known = self.halo.known
-            n = self.N
-            geo = self.halo.exchange(np.concatenate([gq.X.reshape(n, -1), (gq.normal * gq.dA[..., None]).reshape(n, -1),
-                                                     gq.dA.reshape(n, -1)], axis=1))
-        self.src = np.ascontiguousarray(geo[:, :3 * mq].reshape(-1, 3))
-        self.src_nw = np.ascontiguousarray(geo[:, 3 * mq:6 * mq].reshape(-1, 3))
-        self.src_w = np.ascontiguousarray(geo[:, 6 * mq:].reshape(-1))
+            x, nw, w = self.halo.exchange_rows(gq.X, gq.normal * gq.dA[..., None], gq.dA)
+        self.src = np.ascontiguousarray(x.reshape(-1, 3))
+        self.src_nw = np.ascontiguousarray(nw.reshape(-1, 3))
+        self.src_w = w.reshape(-1)
+        self.src_id = np.repeat(self.known, mq)
+        self.src_off = np.arange(len(self.known) + 1, dtype=np.int64) * mq
+        # the near blocks read the sources planar, x/y/z runs per vesicle (stokes.planar)
+        self.src_planar = stokes.planar(self.src, self.src_off)
+        self.src_nw_planar = stokes.planar(self.src_nw, self.src_off)
         # this rank's source points within `known` (increasing ids: Partition.block_vesicles)
-        own = self.halo.own_rows()
-        self._own_src = (own[:, None] * mq + np.arange(mq)[None]).reshape(-1)
+        self._own_src = _point_rows(self.halo.own_rows(), mq)
         return backend, params
 
-    def _far_partitioned(self, backend, params):
+    def _far_field(self, backend, params):
         """direct: this rank's sources, every rank's block passed around the ring; ewald: the
-        known sources (real-space part) and this rank's spread (grid Allreduced); fmm: all."""
+        known sources (real-space part) and this rank's spread (grid summed over the ranks);
+        fmm: all."""
         s, o = self.settings, self._own_src
         if backend == "direct":
             return FarField(self.src[o], self.src_id[o], self.trg, self.trg_id, backend="direct", eps=s.fmm_eps,
                             double_layer=self.want_double, ring=self.part)
-        spread = (self.part, o) if backend == "ewald" else None
         return FarField(self.src, self.src_id, self.trg, self.trg_id, backend=backend, eps=s.fmm_eps,
-                        period=s.period, params=params, spread=spread, double_layer=self.want_double,
+                        period=s.period, params=params, spread=(self.part, o), double_layer=self.want_double,
                         own=self.far_own, own_skip=self._own_skip)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):
-        """Near pairs, projections, line points and interpolation weights for targets trg."""
-        hmax = float(self.h.max())
+        """Near pairs of the targets trg with their projections, line points and interpolation
+        weights (vesflow.layerpot.near.NearPairs; None when there is none)."""
+        p, h_all = self.p, self.h
         # tpos: each pair's target, moved to its image nearest the vesicle when periodic
-        pairs, tpos = nearmod.near_pairs_images(trg, trg_id, self.src, self.src_id, self.src_off, hmax,
+        pairs, tpos = nearmod.near_pairs_images(trg, trg_id, self.src, self.src_id, self.src_off, float(h_all.max()),
                                                 self.settings.period)
-        if len(pairs):
-            keep = np.zeros(len(pairs), dtype=bool)
-            # exact per-vesicle width: min distance from the target to the vesicle's sources
-            nearest = np.empty(len(pairs), dtype=np.int64)
-            for k0 in range(0, len(pairs), 2048):
-                sl = slice(k0, k0 + 2048)
-                t, v = pairs[sl, 0], pairs[sl, 1]
-                pts = self.src.reshape(len(self.known), -1, 3)[self._row(v)]           # (B, Mq, 3)
-                d2 = np.einsum("bmk,bmk->bm", pts - tpos[sl][:, None], pts - tpos[sl][:, None])
-                j = d2.argmin(axis=1)
-                nearest[sl] = j
-                keep[sl] = np.sqrt(d2[np.arange(len(j)), j]) < 2.0 * self.h[v]
-            pairs, nearest, tpos = pairs[keep], nearest[keep], tpos[keep]
-        else:
-            nearest = np.zeros(0, dtype=np.int64)
-        info = {"pairs": np.ascontiguousarray(pairs)}
+        # exact per-vesicle width: min distance from the target to the vesicle's sources
+        keep = np.zeros(len(pairs), dtype=bool)
+        nearest = np.empty(len(pairs), dtype=np.int64)
+        srcv = self.src.reshape(len(self.known), -1, 3)
+        for k0 in range(0, len(pairs), 2048):
+            sl = slice(k0, k0 + 2048)
+            v = pairs[sl, 1]
+            d = srcv[self._row(v)] - tpos[sl][:, None]                          # (B, Mq, 3)
+            d2 = np.einsum("bmk,bmk->bm", d, d)
+            j = d2.argmin(axis=1)
+            nearest[sl] = j
+            keep[sl] = np.sqrt(d2[np.arange(len(j)), j]) < 2.0 * h_all[v]
+        pairs, nearest, tpos = pairs[keep], nearest[keep], tpos[keep]
         if not len(pairs):
-            return info
+            return None
         it, jp = np.divmod(nearest, self.Tq.nlon)
         # vesicles by their row in `known` (the sources this rank holds); pairs[:, 1] keeps the id
-        coeffs = self.surface.coeffs if self.part is None else self.surface.coeffs[self.known]
-        proj = nearmod.Projection(coeffs, self.p, tpos, self._row(pairs[:, 1]),
+        proj = nearmod.Projection(self.surface.coeffs[self.known], p, tpos, self._row(pairs[:, 1]),
                                   self.Tq.theta[it], self.Tq.phi[jp])
-        h = self.h[pairs[:, 1]]
+        h = h_all[pairs[:, 1]]
         # targets farther than h (1 + blend) from their projection are in the smooth-rule zone
-        blend = getattr(self.settings, "near_blend", 0.0)
-        inside_zone = np.abs(proj.signed_distance) < h * (1.0 + blend)
+        blend = self.settings.near_blend
+        zone = np.abs(proj.signed_distance) < h * (1.0 + blend)
+        weight = None
         if blend > 0:
-            info["blend"] = nearmod.blend_weight((np.abs(proj.signed_distance[inside_zone]) / h[inside_zone] - 1.0) / blend)
-        info["pairs"] = np.ascontiguousarray(pairs[inside_zone])
-        info["tpos"] = np.ascontiguousarray(tpos[inside_zone])
-        P = len(info["pairs"])
-        # (row of tpos, vesicle): the pair list of the smooth-rule kernels
-        rows = self._row(info["pairs"][:, 1])
-        info["rows"] = rows
-        info["tpairs"] = np.ascontiguousarray(np.stack([np.arange(P), rows], axis=1))
-        sel = lambda a: a[inside_zone]
+            weight = nearmod.blend_weight((np.abs(proj.signed_distance[zone]) / h[zone] - 1.0) / blend)
+        pairs, tpos, h = np.ascontiguousarray(pairs[zone]), np.ascontiguousarray(tpos[zone]), h[zone]
+        sel = lambda a: a[zone]
         proj.theta, proj.phi, proj.point, proj.normal = map(sel, (proj.theta, proj.phi, proj.point, proj.normal))
         proj.signed_distance, proj.converged = sel(proj.signed_distance), sel(proj.converged)
-        info["projection"] = proj
         side = np.where(proj.signed_distance >= 0, 1.0, -1.0)
-        info["side"] = side
         oriented = _Oriented(proj, side)
-        pts, _ = nearmod.line_points(oriented, h[inside_zone])
-        info["line_points"] = np.ascontiguousarray(pts.reshape(-1, 3))
-        info["line_pairs"] = np.ascontiguousarray(
-            np.stack([np.arange(P * nearmod.L_POINTS), np.repeat(rows, nearmod.L_POINTS)], axis=1))
+        line, _ = nearmod.line_points(oriented, h)
         # each pair's target and its line points: one block of 1 + L_POINTS targets against the
         # pair's vesicle (stokes.*_sum_blocks, vectorized across the block)
-        info["blocks"] = np.ascontiguousarray(np.concatenate(
-            [info["tpos"][:, None], pts.reshape(P, nearmod.L_POINTS, 3)], axis=1))
-        info["block_ves"] = np.ascontiguousarray(rows, dtype=np.int64)
-        info["weights"] = nearmod.interpolation_weights(oriented, h[inside_zone])
-        info["basis"] = sph.evaluate(np.eye(sph.n_coeffs(self.p)), self.p, proj.theta, proj.phi).T  # (P, C)
-        return info
+        blocks = np.ascontiguousarray(np.concatenate([tpos[:, None], line.reshape(len(pairs), nearmod.L_POINTS, 3)],
+                                                     axis=1))
+        return nearmod.NearPairs(
+            pairs=pairs, tpos=tpos, rows=np.ascontiguousarray(self._row(pairs[:, 1]), dtype=np.int64),
+            projection=proj, side=side, blocks=blocks, weights=nearmod.interpolation_weights(oriented, h),
+            basis=sph.evaluate(np.eye(sph.n_coeffs(p)), p, proj.theta, proj.phi).T, blend=weight)
 
     def _row(self, ids):
         """Rows in `known` (this rank's sources) of vesicle ids."""
-        return ids if self.part is None else np.searchsorted(self.known, ids)
+        return np.searchsorted(self.known, ids)
 
     # ------------------------------------------------------------------ apply
     def _densities(self, f, g):
         """Sources of the smooth rule on the q_far grid: f w / mu and (1 - lambda) g."""
-        w = self.src_w if self.part is None else self.src_w_local
-        fw = np.moveaxis(self.Tq.synth(f), -2, -1).reshape(-1, 3) * (w / self.mu)[:, None]
+        fw = np.moveaxis(self.Tq.synth(f), -2, -1).reshape(-1, 3) * (self.src_w_local / self.mu)[:, None]
         gq = None
         if g is not None and self.want_double:
             gq = np.moveaxis(self.Tq.synth(g * (1.0 - self.lam)[:, None, None]), -2, -1).reshape(-1, 3)
@@ -358,23 +323,20 @@ class LayerPotentials:
         gl = g * (1.0 - self.lam)[:, None, None] if (g is not None and self.want_double) else None
         return self.own_ops.apply(f, gl)
 
-    def apply(self, f, g=None, parts=None):
+    def apply(self, f, g=None):
         """Coefficients (N, 3, C) of sum_j S_j[f_j] + D_j[g_j] on every surface (pv for own D)."""
-        parts = parts if parts is not None else {}
-        with _timed(self.timers, "self"):
+        with self.timers.stage("self"):
             u_self = self.self_part(f, g)
         if self.far is None:
             return u_self
-        with _timed(self.timers, "far_own"):
+        with self.timers.stage("far_own"):
             u_own = self.own_smooth_part(f, g)
         fw, gq = self._densities(f, g)
-        u_near, g_near = u_self, g
-        if self.part is not None:
-            fw, gq, u_near, g_near = self._exchanged(fw, gq, u_self, g)
-        with _timed(self.timers, "far"):
+        fw, gq, u_near, g_near = self._exchanged(fw, gq, u_self, g)
+        with self.timers.stage("far"):
             vals = self._far_evaluate(fw, gq)
-        with _timed(self.timers, "near"):
-            vals = self._near_correct(vals, self.near, self.trg, fw, gq, u_near, g_near)
+        with self.timers.stage("near"):
+            vals = self._near_correct(vals, self.near, fw, gq, u_near, g_near)
         vals = vals.reshape(self.N, -1, 3)
         out = u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
         if u_own is not None:
@@ -385,7 +347,7 @@ class LayerPotentials:
         """The far field at this rank's targets from densities over the sources it holds (the
         ring of ranks passes only this rank's own ones: FarField.ring)."""
         nw = self.src_nw if gq is not None else None
-        if getattr(self.far, "ring", None) is not None:
+        if self.far.ring is not None:
             o = self._own_src
             return self.far.evaluate(f_w=fw[o], nw=None if nw is None else nw[o], g=None if gq is None else gq[o])
         return self.far.evaluate(f_w=fw, nw=nw, g=gq)
@@ -395,65 +357,59 @@ class LayerPotentials:
         densities of the vesicles this rank holds sources of, and the self potentials and
         double-layer densities the near corrections start from (their source vesicle may live
         on another rank).  Rows in `known` order."""
-        N, mq, C3 = self.N, self.Tq.npts, 3 * sph.n_coeffs(self.p)
-        pieces = [fw.reshape(N, -1), u_self.reshape(N, -1)]
-        if gq is not None:
-            pieces += [gq.reshape(N, -1), g.reshape(N, -1)]
-        with _timed(self.timers, "gather"):
-            allg = self.halo.exchange(np.concatenate(pieces, axis=1))
-        K = len(self.known)
-        fw_all = np.ascontiguousarray(allg[:, :3 * mq].reshape(-1, 3))
-        u_all = allg[:, 3 * mq:3 * mq + C3].reshape(K, 3, -1)
+        N = self.N
+        rows = [fw.reshape(N, -1), u_self] + ([] if gq is None else [gq.reshape(N, -1), g])
+        with self.timers.stage("gather"):
+            rows = self.halo.exchange_rows(*rows)
+        fw_all = np.ascontiguousarray(rows[0].reshape(-1, 3))
         if gq is None:
-            return fw_all, None, u_all, None
-        o = 3 * mq + C3
-        gq_all = np.ascontiguousarray(allg[:, o:o + 3 * mq].reshape(-1, 3))
-        g_all = allg[:, o + 3 * mq:].reshape(K, 3, -1)
-        return fw_all, gq_all, u_all, g_all
+            return fw_all, None, rows[1], None
+        return fw_all, np.ascontiguousarray(rows[2].reshape(-1, 3)), rows[1], rows[3]
 
-    def _near_correct(self, vals, info, trg, fw, gq, u_self, g):
-        """Replace the smooth rule of near pairs by the near-singular value."""
-        if info is None or "projection" not in info:
+    def _near_correct(self, vals, near, fw, gq, u_self, g):
+        """Replace the smooth rule of the near pairs by the near-singular value, in vals (T, 3);
+        the on-surface value at the projection is the self potential of the pair's vesicle,
+        one-sided for D."""
+        if near is None:
             return vals
-        pairs = info["pairs"]
-        # smooth rule of each pair's vesicle at its target (column 0) and line points (1 ..)
-        blk = np.zeros(info["blocks"].shape)
-        fp = stokes.planar(fw, self.src_off)
-        if gq is None:
-            stokes.stokeslet_sum_blocks(self.src_planar, fp, self.src_off, info["blocks"], info["block_ves"], blk)
-        else:                          # both layers in one pass over the sources (the same values)
-            stokes.stokeslet_stresslet_sum_blocks(self.src_planar, fp, self.src_nw_planar,
-                                                  stokes.planar(gq, self.src_off), self.src_off, info["blocks"],
-                                                  info["block_ves"], blk)
-        smooth = blk[:, 0]
-        line = blk[:, 1:]
-        v, rows = pairs[:, 1], info["rows"]
-        # on-surface value at the projection: the self potential of vesicle v, one-sided for D
-        u0 = _rows_times_vesicle(info["basis"], u_self, rows)
+        u0 = _rows_times_vesicle(near.basis, u_self, near.rows)
         if gq is not None:
-            g0 = _rows_times_vesicle(info["basis"], g, rows) * (1.0 - self.lam_all[v])[:, None]
-            u0 -= 0.5 * info["side"][:, None] * g0
-        w = info["weights"]
-        nearval = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line)
-        if "blend" in info:
-            np.add.at(vals, pairs[:, 0], info["blend"][:, None] * (nearval - smooth))
-        else:
-            np.add.at(vals, pairs[:, 0], nearval - smooth)
+            g0 = _rows_times_vesicle(near.basis, g, near.rows) * (1.0 - self.lam_all[near.pairs[:, 1]])[:, None]
+            u0 -= 0.5 * near.side[:, None] * g0
+        corr = self._near_minus_smooth(near, u0, fw, gq)
+        np.add.at(vals, near.pairs[:, 0], corr if near.blend is None else near.blend[:, None] * corr)
         return vals
+
+    def _near_minus_smooth(self, near, u0, fw=None, gq=None):
+        """Per near pair (P, 3): the near-singular value (the line extrapolation from the
+        on-surface value u0 at the projection through the smooth rule at the line points) less
+        the smooth rule at the target, for the single layer of the far-field densities fw and
+        the double layer of gq (either may be None)."""
+        blk = np.zeros(near.blocks.shape)
+        src, off = self.src_planar, self.src_off
+        if gq is None:
+            stokes.stokeslet_sum_blocks(src, stokes.planar(fw, off), off, near.blocks, near.rows, blk)
+        elif fw is None:
+            stokes.stresslet_sum_blocks(src, self.src_nw_planar, stokes.planar(gq, off), off, near.blocks,
+                                        near.rows, blk)
+        else:                          # both layers in one pass over the sources (the same values)
+            stokes.stokeslet_stresslet_sum_blocks(src, stokes.planar(fw, off), self.src_nw_planar,
+                                                  stokes.planar(gq, off), off, near.blocks, near.rows, blk)
+        w = near.weights
+        return w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], blk[:, 1:]) - blk[:, 0]
 
     def evaluate_at(self, targets, f, g=None):
         """Values at free targets (T, 3) of sum_j S_j[f_j] + D_j[g_j], any distance (off-surface)."""
-        if self.part is not None:
+        if not np.array_equal(self.idx, np.arange(self.N_total)):
             raise ValueError("evaluate_at: free targets need the layer potentials of all vesicles "
-                             "on this process (part=None); this one holds a partition")
+                             f"on this process; this one holds {self.N} of {self.N_total} (a partition)")
         targets = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
         tid = np.full(len(targets), -1, dtype=np.int64)
         fw, gq = self._densities(f, g)
         far = FarField(self.src, self.src_id, targets, tid, backend=self.settings.backend, eps=self.settings.fmm_eps,
                        period=self.settings.period, double_layer=gq is not None)
         vals = far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
-        info = self._near_setup(targets, tid)
-        return self._near_correct(vals, info, targets, fw, gq, self.self_part(f, g), g)
+        return self._near_correct(vals, self._near_setup(targets, tid), fw, gq, self.self_part(f, g), g)
 
     # ------------------------------------------------------------------ error estimate (3.2.4)
     def error_estimate(self):
@@ -470,31 +426,20 @@ class LayerPotentials:
         out = {"self": float(np.abs(self_vals - 0.5).max()), "near": 0.0, "far": 0.0}
         if self.N_total == 1:
             return self._max_over_ranks(out)
-        gq = np.ones((len(self.src), 3))
-        vals = np.zeros((len(self.trg), 3))
-        if self.part is None:
-            stokes.stresslet_sum_excl(self.src, self.src_nw, gq, self.src_id, self.trg, self.trg_id, vals)
-        else:                # the direct sum over every rank's sources: the ring of ranks
-            o = self._own_src
-            ring = FarField(self.src[o], self.src_id[o], self.trg, self.trg_id, backend="direct", ring=self.part)
-            vals = ring.evaluate(nw=self.src_nw[o], g=gq[o])
+        ones = np.ones((len(self.src), 3))
+        o = self._own_src              # the direct sum over every rank's sources: the ring of ranks
+        ring = FarField(self.src[o], self.src_id[o], self.trg, self.trg_id, backend="direct", ring=self.part)
+        vals = ring.evaluate(nw=self.src_nw[o], g=ones[o])
         near_t = np.zeros(len(self.trg), dtype=bool)
-        if self.near is not None and "projection" in self.near:
-            info = self.near
-            smooth = np.zeros((len(info["pairs"]), 3))
-            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["tpos"], info["tpairs"], smooth)
-            line = np.zeros((len(info["line_points"]), 3))
-            stokes.stresslet_sum_pairs(self.src, self.src_nw, gq, self.src_off, info["line_points"],
-                                       info["line_pairs"], line)
-            u0 = (0.5 - 0.5 * info["side"])[:, None] * np.ones((1, 3))   # outside limit: 0, inside: 1
-            line = line.reshape(len(info["pairs"]), nearmod.L_POINTS, 3)
-            w = info["weights"]
+        if self.near is not None:
+            near = self.near
+            u0 = (0.5 - 0.5 * near.side)[:, None] * np.ones((1, 3))   # outside limit: 0, inside: 1
+            corr = self._near_minus_smooth(near, u0, gq=ones)
             # periodic: pairs with a periodic image of the target are left out (the direct sum
             # above is over the primary images only)
-            prim = np.all(info["tpos"] == self.trg[info["pairs"][:, 0]], axis=1)
-            corr = w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], line) - smooth
-            np.add.at(vals, info["pairs"][prim, 0], corr[prim])
-            near_t[info["pairs"][prim, 0]] = True
+            prim = np.all(near.tpos == self.trg[near.pairs[:, 0]], axis=1)
+            np.add.at(vals, near.pairs[prim, 0], corr[prim])
+            near_t[near.pairs[prim, 0]] = True
         err = np.abs(vals).max(axis=1)
         out["near"] = float(err[near_t].max()) if near_t.any() else 0.0
         out["far"] = float(err[~near_t].max()) if (~near_t).any() else 0.0
@@ -502,21 +447,19 @@ class LayerPotentials:
 
     def _max_over_ranks(self, errors):
         """The largest of each error over the ranks (every rank takes the same decision)."""
-        if self.part is None:
-            return errors
         return {k: self.part.max(v) for k, v in errors.items()}
 
     @property
     def n_near_pairs(self):
-        return 0 if self.near is None else len(self.near["pairs"])
+        return 0 if self.near is None else len(self.near.pairs)
 
     def contacts(self):
         """Near pairs whose target lies on or behind the other surface: (target, vesicle, signed distance)."""
-        if self.near is None or "projection" not in self.near:
+        if self.near is None:
             return np.zeros((0, 2), dtype=np.int64), np.zeros(0)
-        d = self.near["projection"].signed_distance
+        d = self.near.projection.signed_distance
         bad = d <= 0
-        return self.near["pairs"][bad], d[bad]
+        return self.near.pairs[bad], d[bad]
 
 
 class _Oriented:
@@ -528,17 +471,21 @@ class _Oriented:
         self.signed_distance = np.abs(proj.signed_distance)
 
 
-class _timed:
-    def __init__(self, timers, name):
-        self.timers, self.name = timers, name
+def _vesicles(surface, idx):
+    """The Surface of the vesicles idx: `surface` itself (and its cached geometry) when idx are
+    all of its vesicles in order."""
+    if np.array_equal(idx, np.arange(surface.n_vesicles)):
+        return surface
+    return Surface(surface.coeffs[idx], surface.p)
 
-    def __enter__(self):
-        if self.timers is not None:
-            self.timers.start(self.name)
 
-    def __exit__(self, *exc):
-        if self.timers is not None:
-            self.timers.stop(self.name)
+def _point_rows(rows, m):
+    """The indices of the m points of each vesicle row in `rows`: a slice when the rows are
+    consecutive (indexing then makes views, not copies)."""
+    rows = np.asarray(rows, dtype=np.int64)
+    if len(rows) and np.array_equal(rows, np.arange(rows[0], rows[0] + len(rows))):
+        return slice(int(rows[0]) * m, (int(rows[-1]) + 1) * m)
+    return (rows[:, None] * m + np.arange(m)[None]).reshape(-1)
 
 
 def _rows_times_vesicle(basis, coeffs, v):

@@ -53,18 +53,18 @@ spectrum has decayed at k_max) and ``w = 2 sqrt 2 sigma sqrt(ln(1/tol) + C_WINDO
 """
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import erf
 
 from vesflow._kernels import ewald as _kernels
 from vesflow._kernels import stokes as _stokes
 from vesflow.errors import SettingsError
 
-NUFFT_LIBS = ("finufft", "ducc0")
+from .ewald_fourier import NUFFT_LIBS, Nufft, kernel_psi, kvectors, sym6
+from .groups import group_by_vesicle
+
 # margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
 # relative error stays below tol for 1e-4 .. 1e-10 (tests/test_ewald.py)
 C_REAL = 0.0
@@ -76,9 +76,6 @@ PREFACTOR_SINGLE = 0.5
 # 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
 # benchmarks/nufft_eps_margin.py, docs/far_field.md "Free space, fourth session"; 0.5 before)
 NUFFT_EPS_FACTOR = 1.0
-# ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
-DUCC0_SIGMA = (1.3, 1.6)
-DUCC0_SIGMA_MIN_EPS = 5e-11
 # weights of the cutoff rule (choose_params: the cutoff of least modelled cost), in the units of
 # CPU seconds of one thread: real space per (target, source) pair inside the cutoff (the estimate
 # of _pair_fraction; single layer), per target (the cell traversal) and per own-vesicle pair;
@@ -320,129 +317,6 @@ def make_params(tol, xi, rc, points, period=None, double_layer=True):
                        nufft_eps=max(tol * NUFFT_EPS_FACTOR, 1e-14), tol=float(tol))
 
 
-# ---------------------------------------------------------------------------------- k space
-def _kvectors(p):
-    return [2.0 * math.pi / P * (np.arange(n) - n // 2) for P, n in zip(p.period, p.modes)]
-
-
-def phi_smooth(r, xi):
-    """``phi^F(r) = r erf(xi r) + exp(-xi^2 r^2) / (xi sqrt(pi))`` (``d phi^F / dr = erf(xi r)``)."""
-    return r * erf(xi * r) + np.exp(-(xi * r) ** 2) / (xi * math.sqrt(math.pi))
-
-
-def _window_1d(x, half, sigma):
-    s = math.sqrt(2.0) * sigma
-    return 0.5 * (erf((half - x) / s) + erf((half + x) / s))
-
-
-def kernel_psi(p, threads=1):
-    """``Psi(k)`` for ``k_a = 2 pi m_a / P_a``, ``m_a = 0 .. K_a/2`` (Psi is even in each
-    component of k), real (K_0/2 + 1, K_1/2 + 1, K_2/2 + 1)."""
-    k = [2.0 * math.pi / P * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
-    if p.periodic:
-        k2 = k[0][:, None, None] ** 2 + k[1][None, :, None] ** 2 + k[2][None, None, :] ** 2
-        with np.errstate(divide="ignore", invalid="ignore"):
-            q = k2 / (4.0 * p.xi ** 2)
-            psi = (1.0 + q) * np.exp(-q) / (k2 * k2)
-        psi[k2 == 0.0] = 0.0
-        return psi
-    import scipy.fft
-    # the periodized K = phi^F W, sum_n K(x + n P), sampled at x_j = j P / K, j = 0 .. K/2 per
-    # axis: on [0, P/2] the images n_a = 0 and -1 (at distance P_a - x_a) count, the latter
-    # where its window is not 0, i.e. for x_a > ~B_a (the period is 2 B + w, _free_period);
-    # the DFT of the even function on the full periodic grid is the type-1 DCT of this octant
-    x = [P / n * np.arange(n // 2 + 1) for P, n in zip(p.period, p.modes)]
-    phi = np.zeros(tuple(n // 2 + 1 for n in p.modes))
-    terms = []                                   # per axis: (index range, coordinate, window)
-    for a in range(3):
-        half = p.box[a] + 0.5 * p.w
-        wa = _window_1d(x[a], half, p.sigma)
-        wi = _window_1d(p.period[a] - x[a], half, p.sigma)
-        live = np.flatnonzero(wi > 0.0)
-        first = int(live[0]) if live.size else x[a].size
-        terms.append([(slice(0, None), x[a], wa),
-                      (slice(first, None), (p.period[a] - x[a])[first:], wi[first:])])
-    for (s0, x0, w0), (s1, x1, w1), (s2, x2, w2) in itertools.product(*terms):
-        if x0.size == 0 or x1.size == 0 or x2.size == 0:
-            continue
-        r = np.sqrt(x0[:, None, None] ** 2 + x1[None, :, None] ** 2 + x2[None, None, :] ** 2)
-        phi[s0, s1, s2] += phi_smooth(r, p.xi) * (w0[:, None, None] * w1[None, :, None] * w2[None, None, :])
-    cell = float(np.prod([P / n for P, n in zip(p.period, p.modes)]))
-    psi = scipy.fft.dctn(phi, type=1, workers=threads, overwrite_x=True)
-    psi *= -cell / (8.0 * math.pi)
-    return np.ascontiguousarray(psi)
-
-
-# ---------------------------------------------------------------------------------- NUFFT
-class _Nufft:
-    """Type 1 (points -> modes, e^{-i k.x}) and type 2 (modes -> points, e^{+i k.x}) transforms
-    on fixed source and target points (scaled to [0, 2 pi)), finufft or ducc0.nufft."""
-
-    def __init__(self, lib, modes, src01, trg01, eps, threads):
-        if lib not in NUFFT_LIBS:
-            raise SettingsError(f"NUFFT library {lib!r} is not one of {', '.join(NUFFT_LIBS)}")
-        self.lib, self.modes, self.eps, self.threads = lib, tuple(int(m) for m in modes), eps, threads
-        self.src, self.trg = src01, trg01
-        self._plans = {}
-
-    def _finufft_plan(self, kind, ntr):
-        key = (kind, ntr)
-        if key not in self._plans:
-            import finufft
-            # upsampling 1.25 is 2-3x faster than finufft's default here (docs/far_field.md)
-            # but its kernel width is capped at 16: 2.0 below eps 1e-9
-            plan = finufft.Plan(kind, self.modes, n_trans=ntr, eps=self.eps, isign=-1 if kind == 1 else 1,
-                                dtype="complex128", nthreads=self.threads, modeord=0,
-                                upsampfac=1.25 if self.eps >= 1e-9 else 2.0)
-            pts = self.src if kind == 1 else self.trg
-            plan.setpts(np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
-                        np.ascontiguousarray(pts[:, 2]))
-            self._plans[key] = plan
-        return self._plans[key]
-
-    def _ducc_plan(self, kind):
-        if kind not in self._plans:
-            import ducc0
-            pts = self.src if kind == 1 else self.trg
-            # oversampling 1.3 .. 1.6 instead of ducc0's own choice in 1.19 .. 2.51: type 1 at
-            # N = 512 (1.08e6 sources, 146^3 modes) 1.64 -> 1.36-1.39 s, N = 64 0.21 -> 0.12 s
-            # (docs/far_field.md, "Speed: third session")
-            # (ducc0 has kernels for them down to eps 5e-11; below, its own range)
-            sigma = DUCC0_SIGMA if self.eps >= DUCC0_SIGMA_MIN_EPS else (1.19, 2.51)
-            self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),
-                                                 grid_shape=self.modes, epsilon=max(self.eps, 3e-13),
-                                                 nthreads=self.threads, periodicity=2 * math.pi,
-                                                 fft_order=False, sigma_min=sigma[0], sigma_max=sigma[1])
-        return self._plans[kind]
-
-    def type1(self, c, out=None):
-        """``F_k = sum_s c_s e^{-i k.y_s}``: c (m, S) complex -> (m, n1, n2, n3) (into ``out``
-        if given)."""
-        m = c.shape[0]
-        if self.lib == "finufft":
-            return self._finufft_plan(1, m).execute(np.ascontiguousarray(c), out=out)
-        return self._ducc_plan(1).nu2u(points=np.ascontiguousarray(c), forward=True, out=out)
-
-    def type2(self, U, out=None):
-        """``u_t = sum_k U_k e^{+i k.x_t}``: U (m, n1, n2, n3) -> (m, T) complex (into ``out``)."""
-        m = U.shape[0]
-        if self.lib == "finufft":
-            return self._finufft_plan(2, m).execute(np.ascontiguousarray(U), out=out)
-        return self._ducc_plan(2).u2nu(grid=np.ascontiguousarray(U), forward=False, out=out)
-
-
-def _sym6(nw, g):
-    """Components (00, 11, 22, 01, 02, 12) of sym(g nw^T), (6, S)."""
-    s = np.empty((6, g.shape[0]))
-    s[0] = g[:, 0] * nw[:, 0]
-    s[1] = g[:, 1] * nw[:, 1]
-    s[2] = g[:, 2] * nw[:, 2]
-    s[3] = 0.5 * (g[:, 0] * nw[:, 1] + g[:, 1] * nw[:, 0])
-    s[4] = 0.5 * (g[:, 0] * nw[:, 2] + g[:, 2] * nw[:, 0])
-    s[5] = 0.5 * (g[:, 1] * nw[:, 2] + g[:, 2] * nw[:, 1])
-    return s
-
-
 OWN_MODES = ("subtract", "smooth")
 
 
@@ -494,25 +368,13 @@ class EwaldSum:
                 raise SettingsError("the Ewald far field needs finufft or ducc0 (pip install finufft)")
         self.nufft_lib = nufft
         # sources sorted by vesicle id; index of each target's own vesicle (-1: none)
-        sid = self.src_id
-        self._perm = None
-        if sid.size and np.any(sid[1:] < sid[:-1]):
-            self._perm = np.argsort(sid, kind="stable")
-            sid = sid[self._perm]
-        self._src_sorted = self.src if self._perm is None else np.ascontiguousarray(self.src[self._perm])
-        self._sid_sorted = np.ascontiguousarray(sid)
-        ids, starts = np.unique(sid, return_index=True)
-        self._src_off = np.append(starts, sid.size).astype(np.int64)
-        trg_vi = np.full(self.trg.shape[0], -1, dtype=np.int64)
-        if ids.size:
-            vi = np.minimum(np.searchsorted(ids, self.trg_id), ids.size - 1)
-            trg_vi = np.where(ids[vi] == self.trg_id, vi, -1).astype(np.int64)
-        self._trg_vi = trg_vi
+        self._groups = grp = group_by_vesicle(self.src, self.src_id, self.trg_id)
+        ids, trg_vi = grp.ids, grp.trg_vi
         if own == "smooth" and p.periodic:
             ext = np.zeros((ids.size, 3))
             if ids.size:
-                pts = np.concatenate([self._src_sorted, self.trg[trg_vi >= 0]])
-                vix = np.concatenate([np.repeat(np.arange(ids.size), np.diff(self._src_off)), trg_vi[trg_vi >= 0]])
+                pts = np.concatenate([grp.src, self.trg[trg_vi >= 0]])
+                vix = np.concatenate([np.repeat(np.arange(ids.size), np.diff(grp.off)), trg_vi[trg_vi >= 0]])
                 hi = np.full((ids.size, 3), -np.inf)
                 lo_ = np.full((ids.size, 3), np.inf)
                 np.maximum.at(hi, vix, pts)
@@ -534,18 +396,22 @@ class EwaldSum:
         # np.mod can return the period itself for tiny negative inputs
         s01[s01 >= 2 * math.pi] = 0.0
         t01[t01 >= 2 * math.pi] = 0.0
-        self._nufft = _Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
-        # spread = (partition, this rank's source indices): the type-1 transform of this rank's
-        # sources only, the mode grid summed over the ranks (Allreduce), the rest replicated
-        # (docs/parallel.md: one node, the grid is small next to the far-field work)
+        self._nufft = Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
+        # spread = (partition, this rank's source indices or slice): the type-1 transform of
+        # this rank's sources only, the mode grid summed over the ranks (Allreduce), the rest
+        # replicated (docs/parallel.md: one node, the grid is small next to the far-field work);
+        # a rank that holds no other rank's sources (one process) spreads with the plan above
         self._spread = None
         if spread is not None:
             part, mine = spread
-            mine = np.asarray(mine, dtype=np.int64)
-            self._spread = (part, mine, _Nufft(nufft, p.modes, np.ascontiguousarray(s01[mine]), t01,
-                                                p.nufft_eps, self.threads))
+            mine = np.arange(self.src.shape[0])[mine]
+            if np.array_equal(mine, np.arange(self.src.shape[0])):
+                self._spread = (part, None, self._nufft)
+            else:
+                self._spread = (part, mine, Nufft(nufft, p.modes, np.ascontiguousarray(s01[mine]), t01,
+                                                  p.nufft_eps, self.threads))
         self._psi = kernel_psi(p, self.threads)
-        self._k = _kvectors(p)
+        self._k = kvectors(p)
         self._real = None            # cell lists of the real-space part, built at the first evaluation
         self._buffers = {}
 
@@ -557,23 +423,20 @@ class EwaldSum:
             self._buffers[name] = b = np.empty(shape, dtype=np.complex128)
         return b
 
-    def _sorted(self, a):
-        return a if self._perm is None else np.ascontiguousarray(a[self._perm])
-
     def real_space(self, f_w=None, nw=None, g=None):
         """Real-space part (own="subtract": incl. the own-vesicle subtraction; "smooth": the
         own vesicle left out), (T, 3)."""
         p = self.params
         out = np.zeros((self.trg.shape[0], 3))
         empty = np.zeros((0, 3))
-        f = empty if f_w is None else self._sorted(np.ascontiguousarray(f_w, dtype=np.float64))
-        n_ = empty if g is None else self._sorted(np.ascontiguousarray(nw, dtype=np.float64))
-        g_ = empty if g is None else self._sorted(np.ascontiguousarray(g, dtype=np.float64))
+        f = empty if f_w is None else self._groups.sorted(np.ascontiguousarray(f_w, dtype=np.float64))
+        n_ = empty if g is None else self._groups.sorted(np.ascontiguousarray(nw, dtype=np.float64))
+        g_ = empty if g is None else self._groups.sorted(np.ascontiguousarray(g, dtype=np.float64))
         if self._real is None:
             box = p.period if p.periodic else tuple(np.asarray(p.box) * (1 + 1e-12) + 1e-300)
-            self._real = _kernels.RealSpace(self._src_sorted, self._sid_sorted, self._src_off, self.trg,
-                                            self.trg_id, self._trg_vi, p.xi, p.rc, p.lo, box, bool(p.periodic),
-                                            self.own == "smooth")
+            grp = self._groups
+            self._real = _kernels.RealSpace(grp.src, grp.sid, grp.off, self.trg, self.trg_id, grp.trg_vi, p.xi, p.rc,
+                                            p.lo, box, bool(p.periodic), self.own == "smooth")
         self._real.apply(f, n_, g_, out)
         return out
 
@@ -586,18 +449,19 @@ class EwaldSum:
         if f_w is not None:
             comps.append(np.asarray(f_w, dtype=np.float64).T)
         if g is not None:
-            comps.append(_sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
+            comps.append(sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
         real = np.concatenate(comps, axis=0)
         m = real.shape[0]
         c = np.zeros(((m + 1) // 2, real.shape[1]), dtype=np.complex128)
         c.real = real[0::2]
         c.imag[:m // 2] = real[1::2]
         del real
+        P = self._buffer("P", (c.shape[0],) + tuple(self.params.modes))
         if self._spread is None:
-            P = self._nufft.type1(c, out=self._buffer("P", (c.shape[0],) + tuple(self.params.modes)))
+            P = self._nufft.type1(c, out=P)
         else:
             part, mine, nufft = self._spread
-            P = part.allreduce_inplace(np.ascontiguousarray(nufft.type1(np.ascontiguousarray(c[:, mine]))))
+            P = part.allreduce_inplace(nufft.type1(c if mine is None else np.ascontiguousarray(c[:, mine]), out=P))
         del c
         P = P.reshape((-1,) + tuple(self.params.modes))
         W = self._buffer("W", (2,) + P.shape[1:])

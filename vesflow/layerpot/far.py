@@ -52,6 +52,8 @@ FMM error of 1e-6 would dominate them, for a measured cost of only about 1.3x.
 """
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 
 from vesflow._kernels import search as _search
@@ -59,6 +61,8 @@ from vesflow._kernels import stokes as _stokes
 from vesflow.errors import NumericalFailure, SettingsError
 
 from . import ewald
+
+from .groups import group_by_vesicle
 
 BACKENDS = ("direct", "fmm", "ewald", "auto")
 DEFAULT_EPS = 1e-8
@@ -264,56 +268,38 @@ class FarField:
                                         own_skip=skip)
             self.smooth_own = own == "smooth"
 
+    @cached_property
+    def _groups(self):
+        """The sources sorted by vesicle id, each target's vesicle among them (vesflow.layerpot.groups)."""
+        return group_by_vesicle(self.src, self.src_id, self.trg_id)
+
     def _snapped_targets(self):
         """The targets, those within SNAP_TOL * (size of the point cloud) of a source of their
         own vesicle moved exactly onto it (``n_snapped`` counts them)."""
-        sid = self.src_id
-        perm = np.argsort(sid, kind="stable") if sid.size and np.any(sid[1:] < sid[:-1]) else None
-        src = self.src if perm is None else np.ascontiguousarray(self.src[perm])
-        ids, starts = np.unique(sid if perm is None else sid[perm], return_index=True)
-        off = np.append(starts, sid.size).astype(np.int64)
-        nt = self.trg.shape[0]
-        trg_vi = np.full(nt, -1, dtype=np.int64)
-        if ids.size:
-            vi = np.minimum(np.searchsorted(ids, self.trg_id), ids.size - 1)
-            trg_vi = np.where(ids[vi] == self.trg_id, vi, -1).astype(np.int64)
+        grp = self._groups
         allp = np.concatenate([self.src, self.trg])
         size = float(np.max(np.ptp(allp, axis=0))) if allp.shape[0] > 1 else 0.0
         tol = SNAP_TOL * (size if size > 0.0 else 1.0)
-        hit = _search.coincident_sources(src, off, self.trg, trg_vi, tol)
+        hit = _search.coincident_sources(grp.src, grp.off, self.trg, grp.trg_vi, tol)
         moved = np.flatnonzero(hit >= 0)
         self.n_snapped = int(moved.size)
         if not moved.size:
             return self.trg
         trg = self.trg.copy()
-        trg[moved] = src[hit[moved]]
+        trg[moved] = grp.src[hit[moved]]
         return trg
 
     # ------------------------------------------------------------------ set-up (FMM)
     def _setup_fmm(self):
-        sid = self.src_id
-        self._perm = None
-        if sid.size and np.any(sid[1:] < sid[:-1]):
-            self._perm = np.argsort(sid, kind="stable")
-            sid = sid[self._perm]
-        self._src_sorted = self.src if self._perm is None else np.ascontiguousarray(self.src[self._perm])
-        self.ids, starts = np.unique(sid, return_index=True)
-        self.src_off = np.append(starts, sid.size).astype(np.int64)
-        # vesicle index (into ids) of each target's own vesicle, -1 if no source has its id
-        nt = self.trg.shape[0]
-        trg_vi = np.full(nt, -1, dtype=np.int64)
-        if self.ids.size:
-            vi = np.minimum(np.searchsorted(self.ids, self.trg_id), self.ids.size - 1)
-            trg_vi = np.where(self.ids[vi] == self.trg_id, vi, -1).astype(np.int64)
-        tsel = np.flatnonzero(trg_vi >= 0)
-        self._self_pairs = np.ascontiguousarray(np.stack([tsel, trg_vi[tsel]], axis=1), dtype=np.int64)
+        grp = self._groups
+        self.ids, self.src_off = grp.ids, grp.off
+        # each target against the sources of its own vesicle (index into ids; -1: none)
+        tsel = np.flatnonzero(grp.trg_vi >= 0)
+        self._self_pairs = np.ascontiguousarray(np.stack([tsel, grp.trg_vi[tsel]], axis=1), dtype=np.int64)
         # snap targets that coincide with an own source up to rounding
         self._trg_fmm = self._snapped_targets()
         self._srcT = np.ascontiguousarray(self.src.T)
         self._trgT = np.ascontiguousarray(self._trg_fmm.T)
-
-    def _sorted(self, a):
-        return a if self._perm is None else np.ascontiguousarray(a[self._perm])
 
     # ------------------------------------------------------------------ evaluation
     def evaluate(self, f_w=None, nw=None, g=None):
@@ -392,11 +378,11 @@ class FarField:
         pairs = self._self_pairs
         if pairs.shape[0]:
             selfv = np.zeros((pairs.shape[0], 3))
-            src = self._src_sorted
+            grp = self._groups
             if f_w is not None:
-                _stokes.stokeslet_sum_pairs(src, self._sorted(f_w), self.src_off, self._trg_fmm, pairs, selfv)
+                _stokes.stokeslet_sum_pairs(grp.src, grp.sorted(f_w), self.src_off, self._trg_fmm, pairs, selfv)
             if g is not None:
-                _stokes.stresslet_sum_pairs(src, self._sorted(nw), self._sorted(g), self.src_off,
+                _stokes.stresslet_sum_pairs(grp.src, grp.sorted(nw), grp.sorted(g), self.src_off,
                                             self._trg_fmm, pairs, selfv)
             out[pairs[:, 0]] -= selfv
         return out

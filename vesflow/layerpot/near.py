@@ -11,6 +11,8 @@ The projection is public: collision detection and repulsion reuse it.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .. import sph
@@ -226,3 +228,28 @@ def near_pairs_images(trg, trg_id, src, src_id, src_off, h, period=None):
     first = order[np.r_[True, key[order][1:] != key[order][:-1]]] if len(order) else order
     first = np.sort(first)
     return np.ascontiguousarray(out[first]), np.ascontiguousarray(pos[first])
+
+
+@dataclass
+class NearPairs:
+    """The near (target, vesicle) pairs of a set-up and what their correction needs: each
+    pair's smooth rule at its target is replaced by the line extrapolation through the target's
+    projection on the vesicle (vesflow.layerpot.evaluator.LayerPotentials).
+
+    pairs (P, 2): target index, vesicle id; tpos (P, 3): the target, at its image nearest the
+    vesicle when periodic; rows (P,): the vesicle's row among the sources the set-up holds;
+    projection: the target's closest point on the vesicle (a Projection of the P pairs); side
+    (P,): +1 outside the vesicle, -1 inside; blocks (P, 1 + L_POINTS, 3): the target and its
+    line points, where the smooth rule is evaluated; weights (P, 1 + L_POINTS): interpolation
+    from the on-surface value and the line points to the target; basis (P, C): the spherical
+    harmonics at the projection; blend (P,) or None: the near value's weight against the smooth
+    rule beyond h_n (blend_weight)."""
+    pairs: np.ndarray
+    tpos: np.ndarray
+    rows: np.ndarray
+    projection: Projection
+    side: np.ndarray
+    blocks: np.ndarray
+    weights: np.ndarray
+    basis: np.ndarray
+    blend: np.ndarray | None = None

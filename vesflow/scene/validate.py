@@ -30,20 +30,13 @@ def _fmt(v, limit=60) -> str:
     return s if len(s) <= limit else s[: limit - 3] + "..."
 
 
+# TOML's name of a parsed value's type; bool before int (a bool is an int)
+_TOML_TYPES = ((bool, "boolean"), (int, "integer"), (float, "float"), (str, "string"), (list, "array"),
+               (dict, "table"))
+
+
 def _toml_type(v) -> str:
-    if isinstance(v, bool):
-        return "boolean"
-    if isinstance(v, int):
-        return "integer"
-    if isinstance(v, float):
-        return "float"
-    if isinstance(v, str):
-        return "string"
-    if isinstance(v, list):
-        return "array"
-    if isinstance(v, dict):
-        return "table"
-    return "date/time"
+    return next((name for kind, name in _TOML_TYPES if isinstance(v, kind)), "date/time")
 
 
 def _error(path, msg, value=_MISSING) -> SceneError:
