@@ -19,7 +19,8 @@ the run (or of a restart) and cut into contiguous blocks of equal point count (a
 have the same p: equal vesicle counts, the first N mod size ranks one more).  The partition is
 static over a run: vesicles that move apart keep their rank (no repartitioning).
 
-With one process nothing here is used (`make_partition` returns None): no gathers.
+With one process the partition has one rank that owns every vesicle, in scene order
+(`serial_partition`): its gathers are copies.
 """
 from __future__ import annotations
 
@@ -249,13 +250,21 @@ def world_size():
     return PETSc.COMM_WORLD.getSize()
 
 
+def serial_partition(n, comm=None):
+    """The one-rank Partition of n vesicles (scene order) over comm (default PETSc's COMM_SELF)."""
+    if comm is None:
+        from petsc4py import PETSc   # here, not at import: the caller initializes PETSc with its options first
+        comm = PETSc.COMM_SELF.tompi4py()
+    return Partition(comm, np.arange(n), [0, n])
+
+
 def make_partition(centroids, points_per_vesicle=None, comm=None):
     """The Partition of vesicles with these centroids (N, 3) over comm (default COMM_WORLD);
-    None with one process."""
+    with one process the one-rank partition in scene order."""
     comm = world_comm() if comm is None else comm
-    if comm.Get_size() == 1:
-        return None
     c = np.asarray(centroids, dtype=float).reshape(-1, 3)
+    if comm.Get_size() == 1:
+        return serial_partition(len(c), comm)
     if len(c) < comm.Get_size():
         from .errors import SceneError
         raise SceneError(f"{comm.Get_size()} MPI processes for {len(c)} vesicles: each rank needs at least one "
