@@ -13,11 +13,10 @@ context); `close` destroys them.  The vesicles are those of a `vesflow.parallel.
 """
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
-
-import copy
 
 from . import forces, sph
 from .errors import ConvergenceError
@@ -26,6 +25,7 @@ from .layerpot.evaluator import LayerPotentials, Settings
 from .operator import StepOperator
 from .parallel import serial_partition
 from .precond import PC_DTYPES, BlockJacobi, _PerVesicle
+from .repulsion import repulsion_force
 from .setup_state import Physics  # noqa: F401  (re-exported: vesflow.stepper.Physics)
 from .solver import configure_ksp
 from .surface import Surface
@@ -60,7 +60,6 @@ class Stepper:
         self.pc_precision = pc_precision   # of the default block-Jacobi PC (None: -ves_pc_precision)
         self.time = 0.0
         self.last = None            # last Solution: initial guess of the next solve
-        self.extra_force = None     # hook: (surface, geometry) -> traction on the force grid (repulsion)
         self.lock_spheres = True    # a sphere's normal velocity of degree >= 2 held at 0 (sphere_constraints)
         self.cond_estimate = None   # of the last solve's preconditioned operator (_condition_estimate)
         self.cond_max = 0.0         # the largest of them so far
@@ -155,13 +154,14 @@ class Stepper:
         return lp, op
 
     def explicit_traction(self, surface, geo):
-        """f_b(X^n) + f_g + f_r on the force grid (N, npts, 3)."""
+        """f_b(X^n) + f_g + f_r (3.13, with the near pairs of the solve's layer potentials) on the
+        force grid (N, npts, 3)."""
         prm = self.params_local
         f = forces.bending_force(geo, prm.kappa)
         if self.physics.gravity is not None and np.any(self.params.drho != 0):
             f = f + forces.gravity_force(geo, prm.drho, self.physics.gravity)
-        if self.extra_force is not None:
-            f = f + self.extra_force(surface, geo)
+        if self.physics.repulsion_radius > 0:
+            f = f + repulsion_force(surface, self.lp_current, self.physics.repulsion_radius, self.q_force)
         return f
 
     def rhs(self, surface, lp, op):
