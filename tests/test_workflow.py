@@ -193,6 +193,55 @@ def test_sdc_run_killed_after_a_checkpoint_restarts_into_the_uninterrupted_run(s
     assert list(res.restarts) == [t_ck] and "-ts_type sdc" in res.attrs["options"]
 
 
+API_RUN = """import sys
+import petsc4py
+petsc4py.init([])
+from vesflow import options as O, scene as S
+from vesflow.io import OutputWriter
+from vesflow.simulation import Run
+sc = S.parse_scene(open(sys.argv[1]).read())
+opts = O.read_options(O.dict_getter({"-ves_checkpoint_every": 0.05}), sc)
+w = OutputWriter(sys.argv[2], scene_text=sc.text, options_text="", version="test", p=sc.p, n_vesicles=sc.n_vesicles,
+                 periodic_length=sc.periodic_length, checkpoint_every=opts["checkpoint_every"])
+with w:
+    Run(sc, opts, writer=w, monitor=True, log=lambda s: print(s, flush=True)).run()
+"""
+
+
+def test_python_api_run_killed_mid_run_restarts_into_the_uninterrupted_run(reference, tmp_path):
+    """A Run driven from Python (OutputWriter + Run), killed with SIGKILL after t = 0.1 and
+    continued in this process from the file's checkpoint (OutputWriter.reopen, Run(checkpoint=)):
+    the frames of the uninterrupted command-line run to 1e-12, the very same steps (the
+    preconditioner is rebuilt from the record in the checkpoint, not reset at checkpoints)."""
+    pytest.importorskip("petsc4py").init([])
+    from vesflow import options as O, scene as S
+    from vesflow.io import OutputWriter, read_checkpoint, read_output
+    from vesflow.simulation import Run
+    scene, ref = reference
+    out = tmp_path / "api.h5"
+    proc = subprocess.Popen([sys.executable, "-c", API_RUN, str(scene), str(out)], cwd=ROOT, env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        for line in proc.stdout:                       # kill once a step starts after t = 0.1
+            if line.startswith("step") and float(line.split()[2][2:]) > 0.1:
+                break
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL, f"the run ended before the kill (status {proc.returncode})"
+    ck = read_checkpoint(out)
+    assert 0.1 <= float(ck["time"]) < 0.3 and int(ck["pc"]["built"]) == 1
+    sc = S.parse_scene(scene.read_text())
+    opts = O.read_options(O.dict_getter({"-ves_checkpoint_every": 0.05}), sc)
+    with OutputWriter.reopen(out, checkpoint_every=opts["checkpoint_every"]) as w:
+        run = Run(sc, opts, writer=w, checkpoint=w.checkpoint)
+        run.run()
+    assert run.stepper._ksp is None                    # the run's KSP and Mat are destroyed at its end
+    assert_same_run(read_output(out), ref)
+
+
 def test_restart_errors_are_one_line(tmp_path):
     bad = tmp_path / "missing.h5"
     r = vesflow(["run", "--restart", bad])

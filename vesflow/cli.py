@@ -286,10 +286,6 @@ def cmd_run(rest):
     try:
         run = Run(sc, opts, writer=writer, checkpoint=checkpoint, progress=progress and rank0,
                   monitor=opts["ts_monitor"] and rank0)
-        # Determinism of restarts: the block preconditioner reuses LU factors across solves
-        # (-ves_pc_lag); a restarted run starts without them.  Dropping them at every checkpoint
-        # makes the uninterrupted run take exactly the steps a restart from that checkpoint takes.
-        writer.on_checkpoint.append(lambda state: _reset_preconditioner(run.stepper))
         run.run()
         if writer.last_checkpoint_time is None or writer.last_checkpoint_time != run.t:
             writer.write_checkpoint(run.checkpoint(), force=True)     # the final state (e.g. -ts_max_steps)
@@ -348,15 +344,6 @@ def _run_error(e, run, writer, out):
         saved = (f"the last good state could not be saved ({error_reason(e2)})"
                  + (f"; {out} has the checkpoint at t = {last:.6g}" if last is not None else ""))
     return RunError(f"{run.position()}: {error_reason(e)}; {saved} (-ves_traceback shows the full trace)")
-
-
-def _reset_preconditioner(stepper):
-    """Forget the preconditioner's lagged LU factors (they are rebuilt at the next solve)."""
-    reset = getattr(stepper, "reset_preconditioner", None)
-    if reset is not None:
-        reset()
-    else:
-        stepper._pc_context = None
 
 
 if __name__ == "__main__":

@@ -17,25 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from . import forces, sph
+from .setup_state import VesicleParams  # noqa: F401  (re-exported: vesflow.operator.VesicleParams)
 from .surface import Surface
-
-
-class VesicleParams:
-    """Per-vesicle physics: bending modulus, viscosity contrast, excess density (arrays of N)."""
-
-    def __init__(self, kappa, lam, drho, viscosity=1.0):
-        self.kappa = np.asarray(kappa, dtype=float)
-        self.lam = np.asarray(lam, dtype=float)
-        self.drho = np.asarray(drho, dtype=float)
-        self.mu = float(viscosity)
-
-    @property
-    def alpha(self):
-        return 0.5 * (1.0 + self.lam)
-
-    def take(self, idx):
-        """The parameters of the vesicles idx (this rank's, vesflow.parallel)."""
-        return VesicleParams(self.kappa[idx], self.lam[idx], self.drho[idx], self.mu)
 
 
 class StepOperator:

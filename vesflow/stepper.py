@@ -6,10 +6,14 @@
 
 The linear system is a petsc4py Mat of type python (operator.StepOperator) solved by KSP
 (GMRES by default, every -ksp_* option honoured); the default preconditioner is the
-block-Jacobi PC context unless the command line names another.
+block-Jacobi PC context unless the command line names another.  One Mat and one KSP per
+stepper, made at the first solve and reused (the Mat takes each solve's operator as its
+context); `close` destroys them.  The vesicles are those of a `vesflow.parallel.Partition`
+(one process: the one-rank partition, every vesicle).
 """
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -19,21 +23,14 @@ from .errors import ConvergenceError
 from .flows import background_velocity
 from .layerpot.evaluator import LayerPotentials, Settings
 from .operator import StepOperator
-from .precond import PC_DTYPES, BlockJacobi
+from .parallel import Partition
+from .precond import PC_DTYPES, BlockJacobi, _PerVesicle
+from .repulsion import repulsion_force
+from .setup_state import Physics  # noqa: F401  (re-exported: vesflow.stepper.Physics)
 from .solver import configure_ksp
 from .surface import Surface
 from .threads import adapt_openmp
 from .timing import Timers
-
-
-class Physics:
-    """Scene physics for the stepper: background flow, gravity, repulsion radius (0 = off)."""
-
-    def __init__(self, flow=None, flow_args=None, gravity=None, repulsion_radius=0.0, viscosity=1.0):
-        self.flow, self.flow_args = flow, dict(flow_args or {})
-        self.gravity = None if gravity is None else np.asarray(gravity, dtype=float)
-        self.repulsion_radius = float(repulsion_radius)
-        self.viscosity = float(viscosity)
 
 
 class Solution:
@@ -49,8 +46,9 @@ class Stepper:
     def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
                  q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None):
         self.coeffs = np.array(coeffs, dtype=float)
-        self.part = part            # vesflow.parallel.Partition (None: one process owns every vesicle)
-        self.params_local = params if part is None else params.take(part.idx)
+        # vesflow.parallel.Partition of the vesicles (None: this process owns every vesicle)
+        self.part = part if part is not None else Partition.single(len(self.coeffs))
+        self.params_local = params.take(self.part.idx)
         self.p = p
         self.params = params
         self.physics = physics or Physics(viscosity=params.mu)
@@ -62,7 +60,6 @@ class Stepper:
         self.pc_precision = pc_precision   # of the default block-Jacobi PC (None: -ves_pc_precision)
         self.time = 0.0
         self.last = None            # last Solution: initial guess of the next solve
-        self.extra_force = None     # hook: (surface, geometry) -> traction on the force grid (repulsion)
         self.lock_spheres = True    # a sphere's normal velocity of degree >= 2 held at 0 (sphere_constraints)
         self.cond_estimate = None   # of the last solve's preconditioned operator (_condition_estimate)
         self.cond_max = 0.0         # the largest of them so far
@@ -70,6 +67,8 @@ class Stepper:
         self.ksp_seconds = 0.0      # wall seconds inside KSPSolve, and its iterations, summed over the solves
         self.ksp_its = 0
         self._lp_cache = []
+        self._ksp = None            # the one KSP (with its Mat and vectors), made at the first solve
+        self._pc_record = None      # a preconditioner_state to rebuild at the next solve (a restart)
 
     @property
     def surface(self):
@@ -79,6 +78,54 @@ class Stepper:
         if cached is None or not np.array_equal(cached.coeffs, self.coeffs):
             cached = self._surface = Surface(self.coeffs.copy(), self.p)
         return cached
+
+    def close(self):
+        """Destroy the KSP, its Mat and vectors (made again by a later solve)."""
+        if self._ksp is not None:
+            for obj in self._ksp[:5]:
+                obj.destroy()
+        self._ksp = None
+
+    def preconditioner_state(self):
+        """What rebuilds the default preconditioner as it is now (a checkpoint entry): the
+        coefficients and quadrature degrees its block parts were built at, the dt of each kept LU
+        factorization (oldest first) and its reuse counters.  {"built": 0} before any (or for a
+        context without reuse state)."""
+        ctx = getattr(self, "_pc_context", None)
+        if not isinstance(ctx, _PerVesicle) or ctx.parts is None:
+            return {"built": 0}
+        lp = ctx.parts_lp
+        return {"built": 1, "coeffs": np.array(lp.surface.coeffs), "q_self": int(lp.q_self), "q_far": int(lp.q_far),
+                "factor_dt": np.array([dt for dt, _ in ctx.factors], dtype=float),
+                "base_its": -1 if ctx.base_its is None else int(ctx.base_its), "uses": int(ctx.uses),
+                "stale": int(ctx.stale), "rebuilds": int(ctx.rebuilds), "rebuild_its": float(ctx.rebuild_its),
+                "excess_its": int(ctx.excess_its)}
+
+    def restore_preconditioner(self, state):
+        """Rebuild the preconditioner of preconditioner_state() `state` at the next solve: the
+        same parts and factors from the same coefficients, so that a restart takes the iterates
+        of the uninterrupted run."""
+        self._pc_record = state if state is not None and int(state.get("built", 0)) else None
+
+    def _rebuild_preconditioner(self, ctx, rec):
+        if not isinstance(ctx, _PerVesicle):
+            return
+        settings = copy.copy(self.lp_settings)
+        settings.q_self, settings.q_far = int(rec["q_self"]), int(rec["q_far"])
+        lp = LayerPotentials(Surface(np.asarray(rec["coeffs"], dtype=float), self.p), lam=self.params.lam,
+                             viscosity=self.params.mu, settings=settings, timers=self.timers, part=self.part)
+        dts = np.atleast_1d(np.asarray(rec["factor_dt"], dtype=float))
+        op = sphere_constraints(lp.local, StepOperator(lp.local, self.params_local, dts[0] if len(dts) else 0.0,
+                                                       lp, self.q_force, self.coupling), self.lock_spheres)
+        with self.timers.stage("pc_blocks"):
+            ctx.parts = ctx.block_parts(op)
+        ctx.parts_key, ctx.parts_lp, ctx.factors = (op.N, op.p), lp, []
+        for dt in dts:
+            op.dt = float(dt)
+            ctx._factors_for(op)
+        base = int(rec["base_its"])
+        ctx.base_its, ctx.uses, ctx.stale = (None if base < 0 else base), int(rec["uses"]), bool(rec["stale"])
+        ctx.rebuilds, ctx.rebuild_its, ctx.excess_its = int(rec["rebuilds"]), float(rec["rebuild_its"]), int(rec["excess_its"])
 
     def reset_preconditioner(self):
         """Forget the preconditioner's parts and factors (a checkpoint: restarts take the same steps)."""
@@ -107,13 +154,14 @@ class Stepper:
         return lp, op
 
     def explicit_traction(self, surface, geo):
-        """f_b(X^n) + f_g + f_r on the force grid (N, npts, 3)."""
+        """f_b(X^n) + f_g + f_r (3.13, with the near pairs of the solve's layer potentials) on the
+        force grid (N, npts, 3)."""
         prm = self.params_local
         f = forces.bending_force(geo, prm.kappa)
         if self.physics.gravity is not None and np.any(self.params.drho != 0):
             f = f + forces.gravity_force(geo, prm.drho, self.physics.gravity)
-        if self.extra_force is not None:
-            f = f + self.extra_force(surface, geo)
+        if self.physics.repulsion_radius > 0:
+            f = f + repulsion_force(surface, self.lp_current, self.physics.repulsion_radius, self.q_force)
         return f
 
     def rhs(self, surface, lp, op):
@@ -156,22 +204,13 @@ class Stepper:
         adapt_openmp(pairs=(surface.n_vesicles * 2 * q * (q + 1)) * (surface.n_vesicles * 2 * self.p * (self.p + 1)))
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
-        n = surface.n_vesicles * op.block
-        comm = PETSc.COMM_SELF if self.part is None else PETSc.COMM_WORLD
-        sizes = n if self.part is None else (op.N * op.block, n)     # the rows of this rank's vesicles
-        A = PETSc.Mat().createPython([sizes, sizes], sphere_constraints(op.surface, op, self.lock_spheres), comm=comm)
-        A.setUp()
-        b = A.createVecRight()
-        x = A.createVecLeft()
+        A, ksp, b, x, r = self._solver(op, surface.n_vesicles * op.block)
         b.setArray(self.rhs(op.surface, lp, op) if displacement is None else self.correction_rhs(lp, op, displacement))
         if (displacement is None and self.last is not None
                 and self.last.u.shape == (surface.n_vesicles, 3, sph.n_coeffs(self.p))):
             x.setArray(op.join(_mine(self.last.u, lp), _mine(self.last.sigma, lp)))
         else:
             x.set(0.0)
-        ksp = PETSc.KSP().create(comm=comm)
-        configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context, ksp_type=self.default_ksp_type())
-        ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (below)
         with self.timers.stage("setup"):
             ksp.setUp()
         t_solve = time.perf_counter()
@@ -187,20 +226,16 @@ class Stepper:
         if np.isfinite(self.cond_estimate):
             self.cond_max = max(self.cond_max, self.cond_estimate)
         rtol = ksp.getTolerances()[0]
-        ksp.destroy()
         if reason < 0:
             if observe is not None:
                 observe(its, failed=True)
-            A.destroy()
             raise ConvergenceError(f"GMRES did not converge: reason {_reason_name(reason)} after {its} iterations",
                                    reason=reason, iterations=its)
         # GMRES tests the preconditioned residual: a (near-)singular preconditioner can report
         # convergence with a wrong solution.  One more matvec checks the true residual.
-        r = b.duplicate()
         A.mult(x, r)
         r.aypx(-1.0, b)
         relres = r.norm() / max(b.norm(), 1e-300)
-        A.destroy()
         if observe is not None:
             observe(its, failed=not relres <= max(1e-6, 1e4 * rtol), seconds=t_solve)
         if not relres <= max(1e-6, 1e4 * rtol):
@@ -210,11 +245,42 @@ class Stepper:
                                    reason=reason, iterations=its)
         u, s = op.split(x.getArray().copy())
         self.lp_last = lp
-        if self.part is not None:            # every rank keeps the velocity of every vesicle
-            with self.timers.stage("gather"):
-                both = self.part.gather(np.concatenate([u.reshape(op.N, -1), s], axis=1))
-            u, s = both[:, :3 * op.C].reshape(-1, 3, op.C), both[:, 3 * op.C:]
+        with self.timers.stage("gather"):     # every rank keeps the velocity of every vesicle
+            both = self.part.gather(np.concatenate([u.reshape(op.N, -1), s], axis=1))
+        u, s = both[:, :3 * op.C].reshape(-1, 3, op.C), both[:, 3 * op.C:]
         return Solution(u.copy(), s.copy(), its, reason)
+
+    def _solver(self, op, n):
+        """(Mat, KSP, b, x, r) of this stepper with op as the Mat's context: made and configured
+        at the first solve (and when the system's size changes), then reused; the Mat's state is
+        increased so that the KSP sets its preconditioner up again (the PC context decides what
+        it reuses).  A preconditioner to rebuild (restore_preconditioner) is rebuilt here."""
+        from petsc4py import PETSc   # here, not at import: the caller initializes PETSc with its options first
+        sizes = (op.N * op.block, n)                  # the rows of this rank's vesicles
+        if self._ksp is not None and self._ksp[5] == sizes:
+            A, ksp = self._ksp[0], self._ksp[1]
+            A.setPythonContext(sphere_constraints(op.surface, op, self.lock_spheres))
+            A.stateIncrease()
+        else:
+            self.close()
+            comm = PETSc.Comm(self.part.comm)
+            A = PETSc.Mat().createPython([sizes, sizes], sphere_constraints(op.surface, op, self.lock_spheres), comm=comm)
+            A.setUp()
+            ksp = PETSc.KSP().create(comm=comm)
+            configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context, ksp_type=self.default_ksp_type())
+            ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (_condition_estimate)
+            self._ksp = (A, ksp, A.createVecRight(), A.createVecLeft(), A.createVecRight(), sizes)
+        pc = ksp.getPC()
+        if pc.getType() == "python":                 # the context kept across solves (and KSPs)
+            ctx = getattr(self, "_pc_context", None)
+            if ctx is None:
+                ctx = self._pc_context = pc.getPythonContext() or self.default_pc_context()
+            if pc.getPythonContext() is not ctx:
+                pc.setPythonContext(ctx)
+            if self._pc_record is not None:
+                self._rebuild_preconditioner(ctx, self._pc_record)
+        self._pc_record = None
+        return self._ksp[:5]
 
     def default_pc_context(self):
         """The block-Jacobi PC context, kept across solves (it reuses LU factors, -ves_pc_lag)."""
@@ -250,7 +316,7 @@ class Stepper:
 
 def _mine(a, lp):
     """The rows of per-vesicle array a (all vesicles) that belong to lp's vesicles."""
-    return a if lp.part is None else a[lp.idx]
+    return a[lp.idx]
 
 
 SPHERE_TOL = 1e-6     # reduced volume above 1 - SPHERE_TOL: a sphere (as correction.py)
