@@ -112,6 +112,7 @@ class Run:
         self.iterations = 0               # GMRES iterations of every solve of this process
         self.first_step_at = None         # perf_counter() when the first step began
         self.last_failure = ""            # the message of the last failed solve (for -ts_monitor)
+        self.stop = None                  # polled at each step boundary: a vesflow.signals.StopRequest
         if checkpoint is None:
             S = Surface(coeffs, self.p)
             self.area0, self.volume0 = S.area(), S.volume()
@@ -316,6 +317,8 @@ class Run:
         max_steps = self.opts["ts_max_steps"]
         while self.t < self.horizon * (1 - 1e-12):
             if max_steps is not None and self.n_accepted >= max_steps:
+                break
+            if self.stop is not None and self.stop.poll():     # a signal: stop at this step boundary
                 break
             dt, target = self._landing_dt()
             q_used = (self.q_self, self.q_near)
