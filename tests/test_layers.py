@@ -25,7 +25,7 @@ PACKAGE = "vesflow"
 # module belongs to the layer with the longest matching name (a package name covers its modules).
 LAYERS = [
     ("base", ["vesflow", "vesflow.errors", "vesflow.calibration", "vesflow.options", "vesflow.timing",
-              "vesflow.threads", "vesflow.parallel", "vesflow._kernels"]),
+              "vesflow.threads", "vesflow.parallel", "vesflow.signals", "vesflow._kernels"]),
     ("scene", ["vesflow.scene"]),
     ("surfaces", ["vesflow.sph", "vesflow.surface", "vesflow.shapes"]),
     ("state set-up", ["vesflow.setup_state"]),

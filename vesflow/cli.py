@@ -1,4 +1,7 @@
-"""`vesflow run | check | render` (INTERFACE.md).  Exit status: 0 done, 2 bad input, 3 numerical failure."""
+"""`vesflow run | check | render` (INTERFACE.md).  Exit status (docs/reference/exit_status.md): 0 done,
+2 bad input (also: the output file is in use by another process), 3 numerical failure or a failed
+write of the output file, 128 + N stopped by signal N (SIGTERM 143, SIGINT 130, SIGUSR1 138) at a
+step boundary with a checkpoint."""
 from __future__ import annotations
 
 import json
@@ -9,7 +12,8 @@ import time
 import traceback
 
 from . import __version__, options, threads
-from .errors import NumericalFailure, OptionError, RunError, SceneError, SettingsError, VesflowError
+from .errors import NumericalFailure, OptionError, OutputError, RunError, SceneError, SettingsError, VesflowError
+from .signals import StopRequest, exit_status, signal_name
 from .solver import check_options, error_reason
 
 USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc and -ves_ options ...]
@@ -196,11 +200,22 @@ def cmd_check(rest):
 
 
 def cmd_run(rest):
-    from . import scene as scenemod  # lazy: numpy is loaded after threads.early_environment() (main)
+    """`vesflow run`: SIGTERM, SIGINT and SIGUSR1 stop it at the next step boundary
+    (vesflow.signals), from the start (the handlers are installed before PETSc, which is
+    started with -no_signal_handler)."""
     if any(a in ("-help", "--help", "-h") for a in rest):
         print(USAGE + "\n")
         print(options.help_text())
         return 0
+    stop = StopRequest().install()
+    try:
+        return _run(rest, stop)
+    finally:
+        stop.restore()
+
+
+def _run(rest, stop):
+    from . import scene as scenemod  # lazy: numpy is loaded after threads.early_environment() (main)
     scene_path, out, restart, cmdline = _split_run_args(rest)
     # validate our own options before PETSc starts (one-line errors, exit 2)
     cmd_origins = []
@@ -255,6 +270,11 @@ def cmd_run(rest):
             out = out or restart
             if os.path.abspath(out) != os.path.abspath(restart):    # continue in a copy, keep the original
                 import shutil
+                from .io.journal import FileInUse, check_not_in_use  # lazy: numpy is loaded after threads.early_environment() (main)
+                try:
+                    check_not_in_use(out)
+                except FileInUse as e:
+                    raise SceneError(e.strerror) from None
                 os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
                 shutil.copyfile(restart, out)
             writer = OutputWriter.reopen(out, options_text=shlex.join(cmdline), checkpoint_every=ck_every,
@@ -272,12 +292,17 @@ def cmd_run(rest):
                                decisions=json.dumps(decisions(sc, opts)))
     except Exception as e:                   # rank 0 could not create / reopen the file
         failure = e
-    if size > 1:             # every rank learns it (no rank left waiting), rank 0 reports it
-        said = PETSc.COMM_WORLD.tompi4py().bcast(None if failure is None else str(failure), root=0)
+    comm = PETSc.COMM_WORLD.tompi4py() if size > 1 else None
+    if comm is not None:     # every rank learns it (no rank left waiting), rank 0 reports it
+        said = comm.bcast(None if failure is None else (str(failure), isinstance(failure, OutputError)), root=0)
         if said is not None and failure is None:
-            raise SceneError(said)
+            raise (OutputError if said[1] else SceneError)(said[0])
     if failure is not None:
         raise failure
+    # a failed write is kept by the writer and stops the run at the next step boundary on every
+    # rank (the poll reduces it with the signals), then reported by rank 0
+    writer.defer_errors = True
+    stop.comm, stop.writer = comm, writer
     progress = opts["progress"] == "on" or (opts["progress"] == "auto" and sys.stderr.isatty())
     if rank0:
         print(f"vesflow: {sc.title}: {sc.n_vesicles} vesicles, p = {sc.p}, T = {sc.time.horizon:g} -> {out}"
@@ -286,15 +311,16 @@ def cmd_run(rest):
     try:
         run = Run(sc, opts, writer=writer, checkpoint=checkpoint, progress=progress and rank0,
                   monitor=opts["ts_monitor"] and rank0)
+        run.stop = stop
         run.run()
         if writer.last_checkpoint_time is None or writer.last_checkpoint_time != run.t:
-            writer.write_checkpoint(run.checkpoint(), force=True)     # the final state (e.g. -ts_max_steps)
+            writer.write_checkpoint(run.checkpoint(), force=True)     # the final state (e.g. -ts_max_steps, a signal)
     except NumericalFailure:
         # the last accepted state (also under -ves_checkpoint_every): continue it with other options
         if run is not None and writer.last_checkpoint_time != run.t:
             writer.write_checkpoint(run.checkpoint(), force=True)
         raise
-    except (SceneError, SettingsError):
+    except (SceneError, SettingsError, OutputError):
         raise
     except Exception as e:                   # a PETSc error or a bug: one line, the last good state saved
         if opts["traceback"]:
@@ -307,6 +333,21 @@ def cmd_run(rest):
         raise err from e
     finally:
         writer.close()
+    failed = getattr(writer, "failure", None) is not None
+    if comm is not None:     # a write that failed after the last poll (the final checkpoint, the close)
+        failed = bool(comm.allreduce(int(failed), op=_mpi_max()))
+    if failed:
+        _quiet_petsc_exit()
+        if rank0:
+            raise writer.failure
+        return OutputError.exit_status
+    if stop.signum:
+        _quiet_petsc_exit()
+        if rank0:
+            print(f"vesflow: stopped by {signal_name(stop.signum)} at t = {run.t:.6g}, step {run.n_accepted}; "
+                  f"checkpoint at t = {writer.last_checkpoint_time:.6g}; continue with --restart {out}",
+                  file=sys.stderr)
+        return exit_status(stop.signum)
     if rank0:
         tm = run.timers.as_dict()
         print(f"vesflow: done at t = {run.t:g}: {run.counts['accepted']} accepted, {run.counts['rejected']} "
@@ -321,7 +362,9 @@ def _init_petsc(petsc_args):
     """Initialize PETSc with the options; vesflow's own (read above) are marked used, so that
     PETSc's report of unused options (-options_left, at exit) lists only misspelled ones."""
     import petsc4py
-    petsc4py.init([sys.argv[0]] + petsc_args)
+    # -no_signal_handler: PETSc's SIGTERM handler (an error block and MPI_Abort) would replace
+    # vesflow's (vesflow.signals, installed before PETSc starts)
+    petsc4py.init([sys.argv[0]] + petsc_args + ["-no_signal_handler"])
     from petsc4py import PETSc
     db = PETSc.Options()
     for _, name, _ in options.argv_pairs(petsc_args):
@@ -333,6 +376,8 @@ def _init_petsc(petsc_args):
 def _run_error(e, run, writer, out):
     """RunError for an unexpected exception e during a run: where, why, and the last good state
     saved (or why it could not be)."""
+    if getattr(writer, "failure", None) is not None:
+        return writer.failure
     if run is None:
         return RunError(f"setting up the run: {error_reason(e)}; nothing was computed "
                         "(-ves_traceback shows the full trace)")
@@ -344,6 +389,11 @@ def _run_error(e, run, writer, out):
         saved = (f"the last good state could not be saved ({error_reason(e2)})"
                  + (f"; {out} has the checkpoint at t = {last:.6g}" if last is not None else ""))
     return RunError(f"{run.position()}: {error_reason(e)}; {saved} (-ves_traceback shows the full trace)")
+
+
+def _mpi_max():
+    from mpi4py import MPI       # only under MPI
+    return MPI.MAX
 
 
 if __name__ == "__main__":

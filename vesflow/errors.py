@@ -53,3 +53,10 @@ class RunError(VesflowError):
     the last good state was saved.  Exit status 3."""
 
     exit_status = 3
+
+
+class OutputError(VesflowError):
+    """Writing the output file failed (no space left on device, an I/O error): names the file
+    and the cause; the file was put back to its last complete frame and checkpoint.  Exit 3."""
+
+    exit_status = 3

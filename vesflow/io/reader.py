@@ -1,13 +1,29 @@
 """Reading a run file: frames, steps, attributes, timings, checkpoint."""
 from __future__ import annotations
 
+import errno
 from dataclasses import dataclass, field
 
 import h5py
 import numpy as np
 
 from ..errors import SceneError
+from .journal import FileInUse, recover
 from .layout import STEP_REASONS
+
+
+def open_run_file(path):
+    """h5py.File(path, "r"), after rolling back a file that a killed run left mid-write
+    (vesflow.io.journal.recover).  A file another process is writing is a SceneError."""
+    try:
+        recover(path)
+        return h5py.File(path, "r")
+    except FileInUse:
+        raise SceneError(f"{path} is in use by another process") from None
+    except OSError as e:
+        if e.errno in (errno.EAGAIN, errno.EACCES) and "lock" in str(e):
+            raise SceneError(f"{path} is in use by another process") from None
+        raise
 
 
 def _read_tree(g):
@@ -47,7 +63,7 @@ def read_attributes(path, what=None):
     or one that is not a run file is a SceneError (prefixed by `what`, e.g. "--restart")."""
     pre = f"{what} {path}" if what else str(path)
     try:
-        f = h5py.File(path, "r")
+        f = open_run_file(path)
     except FileNotFoundError:
         raise SceneError(f"{pre}: no such file") from None
     except OSError as e:
@@ -63,7 +79,7 @@ def read_attributes(path, what=None):
 def read_checkpoint(path):
     """The latest complete checkpoint of a run file as a dict (arrays, scalars, nested
     dicts), with "time".  Raises SceneError if there is none."""
-    with h5py.File(path, "r") as f:
+    with open_run_file(path) as f:
         name = _checkpoint_name(f)
         if name is None:
             raise SceneError(f"{path}: the file has no complete /checkpoint")
@@ -176,7 +192,7 @@ def _read_rows(d, sel):
 def read_output(path, frames=None, fields=None):
     """Read a run file.  frames: None (all), a slice, or indices; fields: None (all of
     /frames) or names (time is always included).  Returns a RunOutput."""
-    with h5py.File(path, "r") as f:
+    with open_run_file(path) as f:
         fr = f["frames"]
         n = int(fr["time"].shape[0])
         idx, sel = _selection(n, frames)
@@ -197,7 +213,7 @@ def read_output(path, frames=None, fields=None):
 def iter_frames(path, fields=None, frames=None):
     """Yield one dict per frame (keys: index, time and the requested /frames fields),
     reading one frame at a time from one open file."""
-    with h5py.File(path, "r") as f:
+    with open_run_file(path) as f:
         fr = f["frames"]
         n = int(fr["time"].shape[0])
         idx, _ = _selection(n, frames)
@@ -214,5 +230,5 @@ def iter_frames(path, fields=None, frames=None):
 
 def frame_fields(path):
     """Names of the datasets under /frames of a run file."""
-    with h5py.File(path, "r") as f:
+    with open_run_file(path) as f:
         return sorted(f["frames"])

@@ -1,16 +1,44 @@
 """Writing a run file: frames, steps, timings, checkpoint; reopening it for a restart."""
 from __future__ import annotations
 
+import errno
+import functools
 import json
+import os
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from ..errors import SceneError
+from ..errors import OutputError, SceneError
+from .journal import FileInUse, JournaledFile
 from .layout import (FIELD_DTYPES, FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
                      TIMING_KEYS, chunks, grid_size, now, time_tol)
 from .reader import _checkpoint_name, _read_tree, read_checkpoint
+
+
+class _Failed(Exception):
+    """A write of the file layer failed (OutputWriter._flush)."""
+
+
+def _guarded(fn):
+    """A writing method: after it, the file is flushed and committed (vesflow.io.journal); a
+    failed write becomes OutputError (raised, or kept in `failure` with defer_errors), and
+    once failed every writing method does nothing."""
+    @functools.wraps(fn)
+    def wrapper(self, *args, **kw):
+        if self.failure is not None:
+            return False
+        try:
+            return fn(self, *args, **kw)
+        except Exception as e:
+            if self._raw is None or self._raw.error is None:
+                raise
+            self.failure = self._output_error()
+            if self.defer_errors:
+                return False
+            raise self.failure from (None if isinstance(e, _Failed) else e)
+    return wrapper
 
 
 class OutputWriter:
@@ -19,7 +47,11 @@ class OutputWriter:
     OutputWriter(path, *, scene_text, options_text, version, p, n_vesicles,
                  periodic_length, restart_of=None, n_coefficients=None)
     creates (overwrites) the file; ``OutputWriter.reopen(path)`` continues one
-    from its checkpoint.
+    from its checkpoint.  The file is written through vesflow.io.journal.JournaledFile: it
+    is locked while open (a second writer: SceneError "... is in use by another process"),
+    and a failed write (no space left, an I/O error) puts it back to its state after the
+    last complete operation and raises OutputError (with defer_errors: keeps it in
+    `failure`; every later write does nothing).
     """
 
     def __init__(self, path, *, scene_text, options_text, version, p, n_vesicles,
@@ -31,18 +63,39 @@ class OutputWriter:
         self.checkpoint_every = None if checkpoint_every is None else float(checkpoint_every)
         self.last_checkpoint_time = None
         self.on_checkpoint = []
+        self.failure = None          # the OutputError of a failed write
+        self.defer_errors = False    # True: a failed write is kept in `failure`, not raised
+        self._raw = None
+        self._doing = "creating the file"
+        self._committed = (0, None, None)    # frames, last frame time, checkpoint time on disk
         if _file is not None:  # reopen()
-            self._f = _file
+            self._f, self._raw = _file
             self._read_sizes()
+            ft = self._f["frames/time"]
+            self._committed = (self.n_frames, float(ft[-1]) if self.n_frames else None, None)
             return
         p = int(p)
         n_vesicles = int(n_vesicles)
         if p < 1 or n_vesicles < 1:
             raise ValueError(f"OutputWriter: need p >= 1 and n_vesicles >= 1, got p={p}, n_vesicles={n_vesicles}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._raw = _open_layer(self.path, create=True)
+        try:
+            self._create(scene_text, options_text, version, p, n_vesicles, periodic_length, restart_of,
+                         n_coefficients)
+        except Exception as e:
+            if self._raw.error is None:
+                self._abandon()
+                raise
+            self.failure = self._output_error()
+            self._abandon()
+            raise self.failure from (None if isinstance(e, _Failed) else e)
+
+    def _create(self, scene_text, options_text, version, p, n_vesicles, periodic_length, restart_of,
+                n_coefficients):
         # libver v108: dense attribute storage (scene texts > 64 KiB) without the
         # v110 superblock whose "file open" flag would lock a file left by a killed run.
-        f = h5py.File(self.path, "w", libver=("v108", "latest"))
+        f = h5py.File(self._raw, "w", libver=("v108", "latest"))
         self._f = f
         self.p, self.n_vesicles = p, n_vesicles
         self.M = grid_size(p)
@@ -86,7 +139,43 @@ class OutputWriter:
         tg.attrs["units"] = "seconds (wall clock)"
         self.n_frames = 0
         self.n_steps = 0
-        f.flush()
+        self._flush()
+
+    def _abandon(self):
+        """Close the handles of a file that could not be created (no rollback needed: the
+        file is new)."""
+        try:
+            if getattr(self, "_f", None) is not None and self._f.id.valid:
+                self._f.close()
+        finally:
+            self._raw.close()
+
+    def _flush(self):
+        """Flush HDF5's caches; the file is then consistent and the journal is emptied."""
+        self._f.flush()
+        if self._raw.error is not None:
+            raise _Failed()
+        self._raw.commit()
+        self._committed = (self.n_frames, self._last_frame_time(), self.last_checkpoint_time)
+
+    def _last_frame_time(self):
+        return float(self._f["frames/time"][self.n_frames - 1]) if self.n_frames else None
+
+    def _output_error(self):
+        """The OutputError of the failed write: the file, the cause, what is on disk now."""
+        e = self._raw.error
+        cause = (os.strerror(e.errno) if e.errno else str(e)).lower().rstrip(".")
+        n, tf, tc = self._committed
+        held = (f"{n} frames up to t = {tf:.6g}" if n else "no frame") + (
+            f" and the checkpoint at t = {tc:.6g}" if tc is not None else "")
+        if self._raw.rollback_error is not None:
+            state = (f"it could not be put back to its last complete frame ({self._raw.rollback_error.strerror}): "
+                     f"any vesflow command reading it will")
+        else:
+            state = f"the file holds {held}"
+        when = " once there is space" if e.errno in (errno.ENOSPC, errno.EDQUOT) else ""
+        more = f": vesflow run --restart {self.path} continues it{when}" if tc is not None else ""
+        return OutputError(f"{self.path}: {cause} ({self._doing}); {state}{more}")
 
     # ------------------------------------------------------------------ helpers
     @staticmethod
@@ -118,6 +207,7 @@ class OutputWriter:
         return a
 
     # ------------------------------------------------------------------ writing
+    @_guarded
     def write_frame(self, time, points, coefficients, tension, area, volume, centroid,
                     bending_energy, velocity=None, poles=None, image=None):
         """Append one frame and flush.  Shapes: points (N, M, 3), coefficients (N, 3, C),
@@ -125,6 +215,7 @@ class OutputWriter:
         (N, M, 3) optional, poles (N, 2, 3) optional (north, south), image (N, 3) integers
         optional (periodic runs).  Returns the frame index."""
         N, M, C = self.n_vesicles, self.M, self.C
+        self._doing = f"writing frame {self.n_frames} (t = {float(time):.6g})"
         values = {"time": np.float64(time)}
         given = dict(points=points, coefficients=coefficients, tension=tension, area=area, volume=volume,
                      centroid=centroid, bending_energy=bending_energy)
@@ -154,9 +245,10 @@ class OutputWriter:
             else:
                 d[k] = FIELD_DTYPES.get(name, (None, np.nan))[1]
         self.n_frames = k + 1
-        self._f.flush()
+        self._flush()
         return k
 
+    @_guarded
     def write_steps(self, rows):
         """Append attempted steps and flush.  rows: a sequence of mappings (keys of
         STEP_COLUMNS), or of tuples in the order time, dt, accepted, ksp_its,
@@ -214,6 +306,7 @@ class OutputWriter:
         data = dict(time=time, dt=dt, accepted=np.asarray(acc, "i1"), ksp_its=np.asarray(its, "i4"),
                     error_estimate=np.asarray(err, "f8"), reason=np.asarray(reason, "i1"),
                     q_self=np.asarray(qs, "i2"), q_near=np.asarray(qn, "i2"))
+        self._doing = "writing the steps"
         st = self._f["steps"]
         k = self.n_steps
         for name in names:
@@ -225,15 +318,17 @@ class OutputWriter:
             d.resize(k + n, axis=0)
             d[k:k + n] = data[name]
         self.n_steps = k + n
-        self._f.flush()
+        self._flush()
 
+    @_guarded
     def write_timings(self, timings):
         """Set /timings attributes (seconds) from a dict; known keys: setup, self, near,
         far, repar, other, total; other keys are stored as well."""
+        self._doing = "writing the timings"
         tg = self._f["timings"]
         for k, v in dict(timings).items():
             tg.attrs[str(k)] = float(v)
-        self._f.flush()
+        self._flush()
 
     def checkpoint_due(self, time):
         """True if a checkpoint at simulated time `time` is due under checkpoint_every."""
@@ -242,6 +337,7 @@ class OutputWriter:
         t = float(time)
         return t >= self.last_checkpoint_time + self.checkpoint_every - time_tol(t)
 
+    @_guarded
     def write_checkpoint(self, state, force=False):
         """Replace /checkpoint by `state` (a dict with at least "time"): arrays become
         datasets, scalars and strings attributes, nested dicts groups, None an empty
@@ -253,6 +349,7 @@ class OutputWriter:
         if not force and not self.checkpoint_due(state["time"]):
             return False
         f = self._f
+        self._doing = f"writing the checkpoint at t = {float(state['time']):.6g}"
         if "checkpoint_new" in f:
             del f["checkpoint_new"]
         g = f.create_group("checkpoint_new")
@@ -261,21 +358,23 @@ class OutputWriter:
         g.attrs["_vesflow_n_steps"] = self.n_steps
         g.attrs["_vesflow_written"] = now()
         g.attrs["_vesflow_complete"] = 1  # last: a group without it is never used
-        f.flush()
+        self._flush()
         if "checkpoint" in f:
             del f["checkpoint"]
         f.move("checkpoint_new", "checkpoint")
-        f.flush()
         self.last_checkpoint_time = float(state["time"])
+        self._flush()
         for fn in list(self.on_checkpoint):
             fn(state)
         return True
 
+    @_guarded
     def write_attrs(self, **attrs):
         """Set extra root attributes (strings or numbers) and flush."""
+        self._doing = "writing attributes"
         for k, v in attrs.items():
             self._f.attrs[str(k)] = v
-        self._f.flush()
+        self._flush()
 
     # ------------------------------------------------------------------ restart
     @classmethod
@@ -288,9 +387,11 @@ class OutputWriter:
         path = Path(path)
         if not path.exists():
             raise SceneError(f"--restart {path}: no such file")
+        raw = _open_layer(path, what="--restart")
         try:
-            f = h5py.File(path, "r+")
+            f = h5py.File(raw, "r+")
         except OSError as e:
+            raw.close()
             raise SceneError(f"--restart {path}: cannot open it as an HDF5 file ({e})") from None
         try:
             name = _checkpoint_name(f)
@@ -320,29 +421,58 @@ class OutputWriter:
             if restart_of is not None and Path(restart_of).resolve() != path.resolve():
                 a["restart_of"] = str(restart_of)
             f.flush()
+            if raw.error is not None:
+                raise OutputError(f"{path}: {os.strerror(raw.error.errno).lower()} (reopening it for the restart); "
+                                  f"the file is unchanged")
+            raw.commit()
         except BaseException:
             f.close()
+            raw.close()
             raise
         w = cls(path, scene_text=None, options_text=None, version=None, p=None, n_vesicles=None,
-                periodic_length=None, checkpoint_every=checkpoint_every, _file=f)
+                periodic_length=None, checkpoint_every=checkpoint_every, _file=(f, raw))
         w.checkpoint = state
         w.last_checkpoint_time = tc
+        w._committed = w._committed[:2] + (tc,)
         return w
 
     # ------------------------------------------------------------------ closing
+    @_guarded
     def flush(self):
-        self._f.flush()
+        self._doing = "flushing it"
+        self._flush()
 
     def close(self):
-        if self._f is not None and self._f.id.valid:
-            self._f.flush()
-            self._f.close()
+        """Flush, close and unlock the file.  A failed last flush becomes `failure` (raised
+        unless defer_errors or an earlier failure)."""
+        if self._f is None:
+            return
+        earlier = self.failure
+        try:
+            if self._f.id.valid:
+                if earlier is None:
+                    self.flush()
+                self._f.close()
+        finally:
+            self._raw.close()
+            self._f = None
 
     def __enter__(self):
         return self
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _open_layer(path, create=False, what=None):
+    """The JournaledFile of a run file; another process holding it is a SceneError."""
+    try:
+        return JournaledFile(path, create=create)
+    except FileInUse as e:
+        raise SceneError(f"{what} {e.strerror}" if what else e.strerror) from None
+    except OSError as e:
+        pre = f"{what} {path}" if what else str(path)
+        raise OutputError(f"{pre}: {(e.strerror or str(e)).lower()} (opening it for writing)") from None
 
 
 def _write_tree(g, state):

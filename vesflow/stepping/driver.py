@@ -27,6 +27,7 @@ class Driver:
         self.first_step_at = None         # perf_counter() when the first step began
         self.last_failure = ""            # the message of the last failed solve (for -ts_monitor)
         self.attempt = None
+        self.stop = None                  # polled at each step boundary: a vesflow.signals.StopRequest
 
     # ------------------------------------------------------------------ one attempted step
     def _try(self, dt):
@@ -93,6 +94,8 @@ class Driver:
             self._output()
         try:
             while not self.adaptor.done(self.t, self.n_accepted):
+                if self.stop is not None and self.stop.poll():     # a signal: stop at this step boundary
+                    break
                 dt, target = self.adaptor.landing(self.t)
                 q_used = (self.q_self, self.q_near)
                 cand, reason, its, err = self._attempt(dt)
