@@ -39,6 +39,7 @@ from .layerpot import ewald as ewaldmod, far as farmod
 from .layerpot.evaluator import (APPLIES_PER_SETUP, OWN_GEMV_BYTE, OWN_SETUP_PAIR, OWN_SINGLE_TOL, LayerPotentials,
                                  Settings)
 from .layerpot.near import near_distance, near_pairs_images
+from .parallel import Partition
 from .setup_state import initial_coefficients
 from .surface import Surface
 
@@ -191,7 +192,8 @@ class _OwnModeInputs:
     _own_dtype = LayerPotentials._own_dtype
 
     def __init__(self, surface, settings, q, want_double):
-        self.settings, self.local, self.part, self.p = settings, surface, None, surface.p
+        self.settings, self.local, self.p = settings, surface, surface.p
+        self.part = Partition.single(surface.n_vesicles)
         self.N = self.N_total = surface.n_vesicles
         self.Tq, self.Tp = sph.transform(surface.p, q), sph.transform(surface.p)
         self.want_double = bool(want_double)

@@ -263,7 +263,7 @@ class Stepper:
             A.stateIncrease()
         else:
             self.close()
-            comm = PETSc.Comm(self.part.comm)
+            comm = PETSc.COMM_SELF if self.part.comm is None else PETSc.Comm(self.part.comm)   # Partition.single: serial
             A = PETSc.Mat().createPython([sizes, sizes], sphere_constraints(op.surface, op, self.lock_spheres), comm=comm)
             A.setUp()
             ksp = PETSc.KSP().create(comm=comm)
