@@ -18,14 +18,13 @@ import time
 
 import numpy as np
 
-from . import forces, sph
+from . import forces, repulsion, sph
 from .errors import ConvergenceError
 from .flows import background_velocity
 from .layerpot.evaluator import LayerPotentials, Settings
 from .operator import StepOperator
 from .parallel import Partition
 from .precond import PC_DTYPES, BlockJacobi, _PerVesicle
-from .repulsion import repulsion_force
 from .setup_state import Physics  # noqa: F401  (re-exported: vesflow.stepper.Physics)
 from .solver import configure_ksp
 from .surface import Surface
@@ -161,7 +160,7 @@ class Stepper:
         if self.physics.gravity is not None and np.any(self.params.drho != 0):
             f = f + forces.gravity_force(geo, prm.drho, self.physics.gravity)
         if self.physics.repulsion_radius > 0:
-            f = f + repulsion_force(surface, self.lp_current, self.physics.repulsion_radius, self.q_force)
+            f = f + repulsion.repulsion_force(surface, self.lp_current, self.physics.repulsion_radius, self.q_force)
         return f
 
     def rhs(self, surface, lp, op):
