@@ -219,3 +219,15 @@ def test_the_checks_find_what_they_look_for(tmp_path):
     assert layer_of("vesflow.layerpot.far") > layer_of("vesflow.sph") > layer_of("vesflow.errors")
     assert layer_of("vesflow.stepping.adaptor") == layer_of("vesflow.simulation")
     assert layer_of("vesflow.sphx") is None and layer_of("vesflow") == 0
+
+
+def test_the_stated_reasons_hold():
+    """The entry point's and vesflow.threads' imports inside functions keep numpy and the
+    compiled kernels unloaded until main() has set the thread environment (vesflow.threads)."""
+    import subprocess
+    import sys
+    code = ("import sys, vesflow.cli, vesflow.threads; "
+            "print(sorted(m for m in ('numpy', 'vesflow._kernels.series') if m in sys.modules))")
+    env = dict(os.environ, PYTHONPATH=os.path.abspath(ROOT))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
