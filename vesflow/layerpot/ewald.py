@@ -27,7 +27,7 @@ The real-space parts (exp(-xi^2 r^2) decay) are summed within a cutoff ``rc`` wi
 with ``Psi = -phi^F^ / (8 pi)``, ``F(k) = sum_s f_s e^{-i k.y_s}``, ``S(k) = sum_s sym(g_s nw_s^T)
 e^{-i k.y_s}`` computed by a type-1 non-uniform FFT and the sum over k by a type-2 NUFFT
 (finufft or ducc0.nufft: the NUFFT's own spreading plays the role of Lindbo and Tornberg's
-Gaussian spreading).
+Gaussian spreading; this Fourier part is vesflow.layerpot.ewald_fourier's).
 
 Free space (af Klinteberg, Shamshirgar and Tornberg 2017 use a truncated Green's function on
 a padded grid, after Vico, Greengard and Ferrando 2016; here the same idea with a smooth
