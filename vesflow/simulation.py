@@ -480,7 +480,7 @@ class Run:
             time=self.t, points=S.points(), coefficients=S.coeffs, tension=Tp.synth(self.sigma),
             area=S.area(), volume=S.volume(), centroid=self.unwrapped_centroid(),
             bending_energy=S.bending_energy(kappa), velocity=np.moveaxis(Tp.synth(self.u), -2, -1),
-            poles=S.pole_points(), **periodic)
+            poles=S.pole_points(), bending_energy_density=S.bending_energy_density(kappa), **periodic)
         self.next_frame = next_output_time(self.t, self.every)
         self._flush_steps()
         self.writer.write_timings(self.timers.as_dict())

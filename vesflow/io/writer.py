@@ -11,6 +11,7 @@ from ..errors import SceneError
 from .layout import (FIELD_DTYPES, FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
                      TIMING_KEYS, chunks, grid_size, now, time_tol)
 from .reader import _checkpoint_name, _read_tree, read_checkpoint
+from .xdmf import XdmfFile, write_mesh
 
 
 class OutputWriter:
@@ -31,9 +32,12 @@ class OutputWriter:
         self.checkpoint_every = None if checkpoint_every is None else float(checkpoint_every)
         self.last_checkpoint_time = None
         self.on_checkpoint = []
+        self.xdmf = XdmfFile.beside(self.path)  # RUN.xmf beside the file, synced at every frame
         if _file is not None:  # reopen()
             self._f = _file
             self._read_sizes()
+            write_mesh(self._f, self.n_vesicles, self.p)   # a file of an earlier layout gets /mesh
+            self.xdmf.sync(self._f)
             return
         p = int(p)
         n_vesicles = int(n_vesicles)
@@ -84,6 +88,7 @@ class OutputWriter:
         for k in TIMING_KEYS:
             tg.attrs[k] = 0.0
         tg.attrs["units"] = "seconds (wall clock)"
+        write_mesh(f, n_vesicles, p)
         self.n_frames = 0
         self.n_steps = 0
         f.flush()
@@ -119,11 +124,11 @@ class OutputWriter:
 
     # ------------------------------------------------------------------ writing
     def write_frame(self, time, points, coefficients, tension, area, volume, centroid,
-                    bending_energy, velocity=None, poles=None, image=None):
+                    bending_energy, velocity=None, poles=None, image=None, bending_energy_density=None):
         """Append one frame and flush.  Shapes: points (N, M, 3), coefficients (N, 3, C),
         tension (N, M), area/volume/bending_energy (N,), centroid (N, 3), velocity
         (N, M, 3) optional, poles (N, 2, 3) optional (north, south), image (N, 3) integers
-        optional (periodic runs).  Returns the frame index."""
+        optional (periodic runs), bending_energy_density (N, M) optional.  Returns the frame index."""
         N, M, C = self.n_vesicles, self.M, self.C
         values = {"time": np.float64(time)}
         given = dict(points=points, coefficients=coefficients, tension=tension, area=area, volume=volume,
@@ -131,7 +136,8 @@ class OutputWriter:
         for name, arr in given.items():
             values[name] = self._check(name, arr, FRAME_FIELDS[name][0](N, M, C))
         optional = {}
-        for name, arr in (("velocity", velocity), ("poles", poles), ("image", image)):
+        for name, arr in (("velocity", velocity), ("poles", poles), ("image", image),
+                          ("bending_energy_density", bending_energy_density)):
             if arr is not None:
                 optional[name] = self._check(name, arr, OPTIONAL_FIELDS[name][0](N, M, C))
         fr = self._f["frames"]
@@ -155,6 +161,7 @@ class OutputWriter:
                 d[k] = FIELD_DTYPES.get(name, (None, np.nan))[1]
         self.n_frames = k + 1
         self._f.flush()
+        self.xdmf.sync(self._f)
         return k
 
     def write_steps(self, rows):
