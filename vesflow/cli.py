@@ -1,6 +1,7 @@
-"""`vesflow run | check | render` (INTERFACE.md).  Exit status: 0 done, 2 bad input, 3 numerical failure."""
+"""`vesflow run | check | render | export | study` (INTERFACE.md).  Exit status: 0 done, 2 bad input, 3 numerical failure."""
 from __future__ import annotations
 
+import importlib
 import os
 import shlex
 import sys
@@ -12,6 +13,7 @@ from .errors import NumericalFailure, OptionError, RunError, SceneError, Vesflow
 USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc and -ves_ options ...]
        vesflow check SCENE.toml [-ves_ and PETSc options]
        vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none] [--camera follow|fit|fixed]
+       vesflow export OUT.h5 [--vtk DIR]   OUT.xmf beside it (ParaView, VisIt); --vtk: .vtp files and a .pvd
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
        vesflow run -help          every vesflow option with its default
        mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/parallel.md)"""
@@ -43,9 +45,12 @@ def main(argv=None):
             from .study import main as study_main
             return study_main(rest)
         if cmd == "render":
+            require_packages("vesflow render", RENDER_PACKAGES, "render")
             from .render import main as render_main
             return render_main(rest, prog="vesflow render")
-        raise SceneError(f"unknown command {cmd!r}: use run, check, render or study")
+        if cmd == "export":
+            return cmd_export(rest)
+        raise SceneError(f"unknown command {cmd!r}: use run, check, render, export or study")
     except SceneError as e:
         _quiet_petsc_exit()
         if not _QUIET:
@@ -71,6 +76,25 @@ def main(argv=None):
             print(f"vesflow: unexpected error: {error_reason(e)} (-ves_traceback shows the full trace)",
                   file=sys.stderr)
         return 3
+
+
+# module -> distribution of the packages `vesflow render` needs (pyproject.toml's render extra)
+RENDER_PACKAGES = {"pyvista": "pyvista", "imageio_ffmpeg": "imageio-ffmpeg", "matplotlib": "matplotlib",
+                   "PIL": "pillow"}
+
+
+def require_packages(what, packages, extra):
+    """SceneError naming the packages of `packages` (module -> distribution) that do not
+    import, before any work."""
+    missing = []
+    for module, dist in packages.items():
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            missing.append(dist)
+    if missing:
+        raise SceneError(f"{what} needs the Python package{'s' if len(missing) > 1 else ''} "
+                         f"{', '.join(missing)}: pip install {' '.join(missing)} (or vesflow[{extra}])")
 
 
 def _launcher_rank():
@@ -195,6 +219,26 @@ def cmd_check(rest):
         check_options(args, origins=origins)
     print(sc.summary())
     print(estimate(sc, opts))
+    return 0
+
+
+def cmd_export(rest):
+    """vesflow export RUN.h5 [--vtk DIR]: write RUN.xmf beside RUN.h5 (its frames for ParaView
+    and VisIt, read from RUN.h5: vesflow.io.xdmf); with --vtk also DIR/RUN_*.vtp and DIR/RUN.pvd."""
+    import argparse
+    from .io.xdmf import write_xdmf
+    ap = argparse.ArgumentParser(prog="vesflow export", description=cmd_export.__doc__)
+    ap.add_argument("run", help="run file (.h5)")
+    ap.add_argument("--vtk", metavar="DIR", default=None, help="also write the frames as .vtp files and a .pvd in DIR")
+    args = ap.parse_args(rest)
+    from .io import read_attributes
+    read_attributes(args.run, what="vesflow export")       # a missing file, or not a run file: one line
+    if args.vtk is not None:
+        require_packages("vesflow export --vtk", {"pyvista": "pyvista"}, "render")
+    print(write_xdmf(args.run))
+    if args.vtk is not None:
+        from .vtk_export import export_vtk
+        print(export_vtk(args.run, args.vtk))
     return 0
 
 
