@@ -79,8 +79,7 @@ def main(argv=None):
 
 
 # module -> distribution of the packages `vesflow render` needs (pyproject.toml's render extra)
-RENDER_PACKAGES = {"pyvista": "pyvista", "imageio_ffmpeg": "imageio-ffmpeg", "matplotlib": "matplotlib",
-                   "PIL": "pillow"}
+RENDER_PACKAGES = {"pyvista": "pyvista", "imageio_ffmpeg": "imageio-ffmpeg", "PIL": "pillow"}
 
 
 def require_packages(what, packages, extra):
