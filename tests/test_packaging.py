@@ -4,35 +4,15 @@ environment, runs `vesflow check`, `run`, `render` and `export` from a directory
 tree; `vesflow render` without the render extra says which package is missing."""
 import ast
 import importlib.metadata as md
-import os
 import re
 import shutil
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
-
 import pytest
 
+from tests.harness import ROOT, clean_env, shared_env
 from vesflow import cli
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def shared_env():
-    """The shared PETSc environment: the one the running venv is layered on (its .shared-env),
-    or the running environment itself."""
-    mark = Path(sys.prefix) / ".shared-env"
-    return Path(mark.read_text().strip()) if mark.is_file() else Path(sys.prefix)
-
-
-def clean_env(**extra):
-    """The environment of a subprocess that must find vesflow by itself (no PYTHONPATH)."""
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV", "PYTHONHOME")}
-    env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", VTK_DEFAULT_OPENGL_WINDOW="vtkEGLRenderWindow")
-    env.update(extra)
-    return env
-
 
 def _norm(name):
     return re.sub(r"[-_.]+", "-", name).lower()
