@@ -10,6 +10,8 @@ KERNELS = [
     "ewald",       # real-space part of the spectral Ewald sums (cell lists)
 ]
 
+HEADERS = ["pairsum.h", "ewaldsum.h"]
+
 compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2", "-fno-math-errno"]
 # no -ffast-math: the singular quadrature needs exact cancellation.  -fno-math-errno changes no
 # result (sqrt of a negative number does not set errno) but lets sqrt vectorize (pairsum.h)
@@ -21,6 +23,8 @@ extensions = [
         extra_compile_args=compile_args,
         extra_link_args=["-fopenmp"],
         define_macros=[("NPY_NO_DEPRECATED_API", "NPY_1_7_API_VERSION")],
+        # a changed header or flag rebuilds the kernel (the up-to-date check compares times)
+        depends=[f"vesflow/_kernels/{h}" for h in HEADERS] + ["setup.py"],
     )
     for name in KERNELS
 ]

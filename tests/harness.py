@@ -1,6 +1,11 @@
-"""Shared by the stability and robustness suites: a Recorder that adds invariants to every
+"""The one helper module of the tests (tests import from here, never from each other):
+paths and environments (ROOT, shared_env, clean_env); a Recorder that adds invariants to every
 frame, a simulate() that runs a scene text through vesflow.simulation.Run, the sheared pair."""
 from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -9,6 +14,25 @@ from vesflow.errors import NumericalFailure
 from vesflow.reparam import spectral_energy
 from vesflow.simulation import Run
 from vesflow.surface import Surface
+
+
+ROOT = Path(__file__).resolve().parents[1]     # the tree (runs/, tools/, benchmarks/)
+
+
+def shared_env():
+    """The shared PETSc environment: the one the running venv is layered on (its .shared-env,
+    tools/layered_venv.sh), or the running environment itself."""
+    mark = Path(sys.prefix) / ".shared-env"
+    return Path(mark.read_text().strip()) if mark.is_file() else Path(sys.prefix)
+
+
+def clean_env(**extra):
+    """The environment of a subprocess that must find vesflow by itself (no PYTHONPATH), one
+    thread, off-screen rendering."""
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV", "PYTHONHOME")}
+    env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", VTK_DEFAULT_OPENGL_WINDOW="vtkEGLRenderWindow")
+    env.update(extra)
+    return env
 
 
 class Recorder(study.Recorder):

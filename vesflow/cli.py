@@ -1,9 +1,10 @@
-"""`vesflow run | check | render` (INTERFACE.md).  Exit status (docs/reference/exit_status.md): 0 done,
-2 bad input (also: the output file is in use by another process), 3 numerical failure or a failed
-write of the output file, 128 + N stopped by signal N (SIGTERM 143, SIGINT 130, SIGUSR1 138) at a
-step boundary with a checkpoint."""
+"""`vesflow run | check | render | export | study` (docs/reference/cli.md).  Exit status
+(docs/reference/exit_status.md): 0 done, 2 bad input (also: the output file is in use by another
+process), 3 numerical failure or a failed write of the output file, 128 + N stopped by signal N
+(SIGTERM 143, SIGINT 130, SIGUSR1 138) at a step boundary with a checkpoint."""
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import shlex
@@ -19,6 +20,7 @@ from .solver import check_options, error_reason
 USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc and -ves_ options ...]
        vesflow check SCENE.toml [-ves_ and PETSc options]
        vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none] [--camera follow|fit|fixed]
+       vesflow export OUT.h5 [--vtk DIR]   OUT.xmf beside it (ParaView, VisIt); --vtk: .vtp files and a .pvd
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
        vesflow run -help          every vesflow option with its default
        mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/parallel.md)"""
@@ -48,9 +50,12 @@ def main(argv=None):
             from .study import main as study_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return study_main(rest)
         if cmd == "render":
+            require_packages("vesflow render", RENDER_PACKAGES, "render")
             from .render import main as render_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return render_main(rest, prog="vesflow render")
-        raise SceneError(f"unknown command {cmd!r}: use run, check, render or study")
+        if cmd == "export":
+            return cmd_export(rest)
+        raise SceneError(f"unknown command {cmd!r}: use run, check, render, export or study")
     except (SceneError, SettingsError) as e:
         _quiet_petsc_exit()
         if not _QUIET:
@@ -75,6 +80,24 @@ def main(argv=None):
             print(f"vesflow: unexpected error: {error_reason(e)} (-ves_traceback shows the full trace)",
                   file=sys.stderr)
         return 3
+
+
+# module -> distribution of the packages `vesflow render` needs (pyproject.toml's render extra)
+RENDER_PACKAGES = {"pyvista": "pyvista", "imageio_ffmpeg": "imageio-ffmpeg", "PIL": "pillow"}
+
+
+def require_packages(what, packages, extra):
+    """SceneError naming the packages of `packages` (module -> distribution) that do not
+    import, before any work."""
+    missing = []
+    for module, dist in packages.items():
+        try:
+            importlib.import_module(module)
+        except ImportError:
+            missing.append(dist)
+    if missing:
+        raise SceneError(f"{what} needs the Python package{'s' if len(missing) > 1 else ''} "
+                         f"{', '.join(missing)}: pip install {' '.join(missing)} (or vesflow[{extra}])")
 
 
 def _launcher_rank():
@@ -196,6 +219,26 @@ def cmd_check(rest):
         check_options(args, origins=origins)
     print(sc.summary())
     print(estimate(sc, opts))
+    return 0
+
+
+def cmd_export(rest):
+    """vesflow export RUN.h5 [--vtk DIR]: write RUN.xmf beside RUN.h5 (its frames for ParaView
+    and VisIt, read from RUN.h5: vesflow.io.xdmf); with --vtk also DIR/RUN_*.vtp and DIR/RUN.pvd."""
+    import argparse
+    from .io.xdmf import write_xdmf  # lazy: numpy is loaded after threads.early_environment() (main)
+    ap = argparse.ArgumentParser(prog="vesflow export", description=cmd_export.__doc__)
+    ap.add_argument("run", help="run file (.h5)")
+    ap.add_argument("--vtk", metavar="DIR", default=None, help="also write the frames as .vtp files and a .pvd in DIR")
+    args = ap.parse_args(rest)
+    from .io import read_attributes  # lazy: numpy is loaded after threads.early_environment() (main)
+    read_attributes(args.run, what="vesflow export")       # a missing file, or not a run file: one line
+    if args.vtk is not None:
+        require_packages("vesflow export --vtk", {"pyvista": "pyvista"}, "render")
+    print(write_xdmf(args.run))
+    if args.vtk is not None:
+        from .vtk_export import export_vtk  # lazy: pyvista, only for --vtk
+        print(export_vtk(args.run, args.vtk))
     return 0
 
 

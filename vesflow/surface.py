@@ -173,6 +173,12 @@ class Surface:
         g = self.geometry(q or 2 * self.p)
         return np.asarray(kappa) * g.integrate(g.H ** 2)
 
+    def bending_energy_density(self, kappa=1.0, q=None):
+        """kappa_b H^2 (N, npts) at the q-grid points (default the p-grid): bending_energy
+        is its integral."""
+        g = self.geometry(q or self.p)
+        return np.reshape(np.asarray(kappa, dtype=float), (-1, 1)) * g.H ** 2
+
     def translated(self, shift):
         """A copy moved by shift (N, 3) or (3,)."""
         c = self.coeffs.copy()

@@ -1,4 +1,5 @@
-"""VTK export of a run: one .vtp per frame plus a .pvd collection (opens in ParaView).
+"""VTK export of a run (`vesflow export RUN.h5 --vtk DIR`): one .vtp per frame plus a .pvd
+collection (opens in ParaView).
 
 Each vesicle is a closed, outward-oriented triangulated surface: the p-grid points
 (latitude-major, see docs/conventions.md) plus a north and a south pole point.
@@ -20,6 +21,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from .io import frame_fields, iter_frames, read_output
+from .io.xdmf import ring_triangles
 
 
 def grid_shape(p):
@@ -32,16 +34,7 @@ def _vesicle_faces(p):
     """(2M, 3) triangles of one vesicle on M + 2 points (grid, north, south)."""
     nlat, nlon = grid_shape(p)
     M = nlat * nlon
-    i, j = np.meshgrid(np.arange(nlat - 1), np.arange(nlon), indexing="ij")
-    i, j = i.ravel(), j.ravel()
-    jn = (j + 1) % nlon
-    a = i * nlon + j            # (theta_i, phi_j)
-    b = i * nlon + jn           # (theta_i, phi_j+1)
-    c = (i + 1) * nlon + jn     # (theta_i+1, phi_j+1)
-    d = (i + 1) * nlon + j      # (theta_i+1, phi_j)
-    # theta grows southwards, phi eastwards: e_theta x e_phi is the outward normal,
-    # so (a, d, c) and (a, c, b) are counter-clockwise seen from outside.
-    quads = np.concatenate([np.stack([a, d, c], 1), np.stack([a, c, b], 1)])
+    quads = ring_triangles(p)
     j = np.arange(nlon)
     jn = (j + 1) % nlon
     north = np.stack([np.full(nlon, M), j, jn], 1)
@@ -155,23 +148,5 @@ def export_vtk(h5path, outdir, *, frames=None, prefix=None):
         entries.append((t, name))
     return write_pvd(outdir / f"{prefix}.pvd", entries)
 
-
-def main(argv=None):
-    """python -m vesflow.vtk_export RUN.h5 OUTDIR: write OUTDIR/RUN_*.vtp and OUTDIR/RUN.pvd."""
-    import argparse
-    import sys
-    ap = argparse.ArgumentParser(prog="python -m vesflow.vtk_export", description=main.__doc__)
-    ap.add_argument("run", help="run file (.h5)")
-    ap.add_argument("outdir", help="directory for the .vtp files and the .pvd")
-    args = ap.parse_args(argv)
-    if not Path(args.run).exists():
-        print(f"{ap.prog}: {args.run}: no such file", file=sys.stderr)
-        return 2
-    print(export_vtk(args.run, args.outdir))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
 
 __all__ = ["frame_polydata", "export_vtk", "write_pvd", "surface_faces", "with_poles", "h5_frame_meshes"]

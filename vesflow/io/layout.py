@@ -50,6 +50,8 @@ FRAME_FIELDS = {
 OPTIONAL_FIELDS = {
     "velocity": (lambda n, m, c: (n, m, 3), "surface velocity on the p-grid", "length/time", True),
     "poles": (lambda n, m, c: (n, 2, 3), "north and south pole points (for pictures)", "length", True),
+    "bending_energy_density": (lambda n, m, c: (n, m), "bending energy per unit area kappa_b H^2 on the p-grid "
+                               "(its integral over the surface is bending_energy)", "energy/length^2", True),
     "image": (lambda n, m, c: (n, 3), "periodic runs: lattice vector / L taken off each vesicle by the "
               "wrap into [0, L)^3 (unwrapped position = stored + L image)", "1", False),
 }

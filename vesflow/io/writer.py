@@ -15,6 +15,7 @@ from .journal import FileInUse, JournaledFile
 from .layout import (FIELD_DTYPES, FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
                      TIMING_KEYS, chunks, grid_size, now, time_tol)
 from .reader import _checkpoint_name, _read_tree, read_checkpoint
+from .xdmf import XdmfFile, write_mesh
 
 
 class _Failed(Exception):
@@ -68,11 +69,14 @@ class OutputWriter:
         self._raw = None
         self._doing = "creating the file"
         self._committed = (0, None, None)    # frames, last frame time, checkpoint time on disk
+        self.xdmf = XdmfFile.beside(self.path)  # RUN.xmf beside the file, synced at every frame
         if _file is not None:  # reopen()
             self._f, self._raw = _file
             self._read_sizes()
             ft = self._f["frames/time"]
             self._committed = (self.n_frames, float(ft[-1]) if self.n_frames else None, None)
+            write_mesh(self._f, self.n_vesicles, self.p)   # a file of an earlier layout gets /mesh
+            self._sync_xdmf()
             return
         p = int(p)
         n_vesicles = int(n_vesicles)
@@ -137,6 +141,7 @@ class OutputWriter:
         for k in TIMING_KEYS:
             tg.attrs[k] = 0.0
         tg.attrs["units"] = "seconds (wall clock)"
+        write_mesh(f, n_vesicles, p)
         self.n_frames = 0
         self.n_steps = 0
         self._flush()
@@ -157,6 +162,18 @@ class OutputWriter:
             raise _Failed()
         self._raw.commit()
         self._committed = (self.n_frames, self._last_frame_time(), self.last_checkpoint_time)
+
+    def _sync_xdmf(self):
+        """RUN.xmf to the frames on disk; a failed write of it is an OutputError as the run
+        file's are (the run file itself is complete: `vesflow export` writes RUN.xmf again)."""
+        try:
+            self.xdmf.sync(self._f)
+        except OSError as e:
+            cause = (os.strerror(e.errno) if e.errno else str(e)).lower().rstrip(".")
+            self.failure = OutputError(f"{self.xdmf.path}: {cause} (writing the XDMF description); {self.path} "
+                                       f"is complete: vesflow export {self.path} writes the description again")
+            if not self.defer_errors:
+                raise self.failure
 
     def _last_frame_time(self):
         return float(self._f["frames/time"][self.n_frames - 1]) if self.n_frames else None
@@ -209,11 +226,11 @@ class OutputWriter:
     # ------------------------------------------------------------------ writing
     @_guarded
     def write_frame(self, time, points, coefficients, tension, area, volume, centroid,
-                    bending_energy, velocity=None, poles=None, image=None):
+                    bending_energy, velocity=None, poles=None, image=None, bending_energy_density=None):
         """Append one frame and flush.  Shapes: points (N, M, 3), coefficients (N, 3, C),
         tension (N, M), area/volume/bending_energy (N,), centroid (N, 3), velocity
         (N, M, 3) optional, poles (N, 2, 3) optional (north, south), image (N, 3) integers
-        optional (periodic runs).  Returns the frame index."""
+        optional (periodic runs), bending_energy_density (N, M) optional.  Returns the frame index."""
         N, M, C = self.n_vesicles, self.M, self.C
         self._doing = f"writing frame {self.n_frames} (t = {float(time):.6g})"
         values = {"time": np.float64(time)}
@@ -222,7 +239,8 @@ class OutputWriter:
         for name, arr in given.items():
             values[name] = self._check(name, arr, FRAME_FIELDS[name][0](N, M, C))
         optional = {}
-        for name, arr in (("velocity", velocity), ("poles", poles), ("image", image)):
+        for name, arr in (("velocity", velocity), ("poles", poles), ("image", image),
+                          ("bending_energy_density", bending_energy_density)):
             if arr is not None:
                 optional[name] = self._check(name, arr, OPTIONAL_FIELDS[name][0](N, M, C))
         fr = self._f["frames"]
@@ -246,6 +264,7 @@ class OutputWriter:
                 d[k] = FIELD_DTYPES.get(name, (None, np.nan))[1]
         self.n_frames = k + 1
         self._flush()
+        self._sync_xdmf()
         return k
 
     @_guarded

@@ -70,7 +70,7 @@ class Frames(Monitor):
                 time=run.t, points=S.points(), coefficients=S.coeffs, tension=Tp.synth(run.state.sigma),
                 area=S.area(), volume=S.volume(), centroid=run.unwrapped_centroid(),
                 bending_energy=S.bending_energy(st.params.kappa), velocity=np.moveaxis(Tp.synth(run.state.u), -2, -1),
-                poles=S.pole_points(), **periodic)
+                poles=S.pole_points(), bending_energy_density=S.bending_energy_density(st.params.kappa), **periodic)
 
 
 class Checkpoints(Monitor):
