@@ -153,6 +153,9 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_max_rejects", int, 20, "consecutive rejected steps before the run stops (exit status 3)",
        "time stepping", ge=1),
     _O("-ves_collision", bool, True, "reject a step whose surfaces touch or cross", "time stepping"),
+    _O("-ves_contact", bool, True, "a touching step that starts in contact (gap below 1% of the grid spacing) "
+       "moves the touching vesicles apart rigidly instead of being rejected: the lubrication layer is not "
+       "resolved there (vesflow/contact.py, docs/explanation/contacts.md)", "time stepping"),
     _O("-ts_max_steps", int, None, "stop after this many accepted steps", "time stepping", ge=0,
        default_text="none"),
     _O("-ts_monitor", bool, False, "print one line per attempted step", "time stepping"),

@@ -14,6 +14,7 @@ import time as _time
 import numpy as np
 
 from . import collision, sph
+from .contact import Contacts
 from .correction import correct_area_volume, restore_spheres
 from .reparam import reparameterize
 from .errors import ConvergenceError, NumericalFailure
@@ -108,6 +109,8 @@ class Run:
         self.counts = {"accepted": 0, "rejected": 0}
         self.reparam_skipped = 0          # accepted steps whose reparameterization would have made contact
         self.reparam_iterated = 0         # accepted steps kept out of contact by the iterated projection
+        self.contacts = (Contacts(self.p, scene_period(scene))    # touching steps in contact
+                         if opts["contact"] and opts["collision"] and scene.n_vesicles > 1 else None)
         self.rows = []
         self.iterations = 0               # GMRES iterations of every solve of this process
         self.first_step_at = None         # perf_counter() when the first step began
@@ -192,6 +195,11 @@ class Run:
                     st.coeffs = self._post_processed(raw, False)
                     touching = self._touching()
                     self.reparam_skipped += int(not touching)
+            if touching and self.contacts is not None:      # in contact: separate (vesflow/contact.py)
+                separated = self.contacts.resolve(st.coeffs, saved[0], self.q_near)
+                if separated is not None:
+                    st.coeffs = separated
+                    touching = self._touching()
             if touching:
                 st.coeffs, st.time, st.last = saved
                 return None, "collision", its, err
