@@ -5,7 +5,8 @@ no intersection (signed distance of every grid point to the other surfaces > 0 a
 frame), area and volume drift, mesh quality (the reparameterization energy E of the paper,
 relative to its start), GMRES converged on every accepted step (a failed solve is a
 rejection, counted by reason), no vesicle lost (all centroids finite and in the domain).
-The fast cases run in `make test`, the long ones (`slow`) in `make test-all`.
+The fast cases run in `make test`, the long ones (`slow`) in `make test-all`.  The runs use
+-ts_type euler (EULER below); tests/test_stability_sdc.py has the same cases with sdc, the default.
 """
 from __future__ import annotations
 
@@ -31,14 +32,14 @@ class Recorder(harness.Recorder):
         return {"angle": _long_axis_angle(coefficients, p)}
 
 
-def simulate(text, **options):
-    return harness.simulate(text, recorder=Recorder, **options)
-
-
-# The tests whose figures (step and rejection counts, solve numbers, measured gaps and angles)
-# were computed with the first-order step pass it explicitly; the others run with the default
-# scheme (sdc).  tests/test_stability_sdc.py runs the pinned ones' scenes with sdc.
+# This suite runs with -ts_type euler, the scheme its figures (step, rejection and solve counts,
+# measured gaps and angles) were computed with; tests/test_stability_sdc.py runs its hard cases
+# with sdc, the default.  The fast sphere sweep runs with the default.
 EULER = {"-ts_type": "euler"}
+
+
+def simulate(text, **options):
+    return harness.simulate(text, recorder=Recorder, **{**EULER, **options})
 
 
 def invariants(name, run, rec, *, area_tol=1e-6, mesh_factor=5.0, box=50.0):
@@ -91,7 +92,7 @@ def test_near_contact_in_shear():
     its last good state (the failure path tested below) instead of crossing."""
     text = harness.pair_scene(1.25, 0.1, p=8, T=5.25, kb=1.0,
                  extra="[repulsion]\nradius = 0.01")
-    run, rec = simulate(text, **EULER)                             # the figures above are euler's
+    run, rec = simulate(text)                             # the figures above are euler's
     inv = invariants("near contact in shear", run, rec)
     assert inv["min_gap"] < 0.01                                   # the case is as hard as announced
 
@@ -231,7 +232,7 @@ def test_viscosity_contrast_10_tumbles():
     (p = 8, T = 8): 1.55 -> -0.15 rad, monotone, slowest near 0 (0.12 rad per unit time), so a
     full turn through -pi/2 would need T ~ 20."""
     sc_text = LAMBDA10.format(p=8, T=8.0, every=0.25)
-    run, rec = simulate(sc_text, **EULER)                          # the angles above are euler's
+    run, rec = simulate(sc_text)                          # the angles above are euler's
     invariants("lambda = 10 in shear, p = 8, T = 8", run, rec)
     angles = np.array([f["angle"] for f in rec.frames])
     print("[stability] long-axis angle in the shear plane:", np.round(angles, 2).tolist())
@@ -255,7 +256,7 @@ shape = "ellipsoid"
 axes = [1.0, 1.0, 2.5]
 bending_modulus = 1.0
 """
-    run, rec = simulate(text, **EULER)      # the first-order step's stiffness is what is tested
+    run, rec = simulate(text)      # the first-order step's stiffness is what is tested
     inv = invariants("too large first dt (0.9) for an ellipsoid 1:2.5 relaxing", run, rec)
     assert inv["rejected"].get("error_estimate", 0) >= 1
     assert not rec.steps[0][2] and rec.steps[0][1] == 0.9        # the first try was the stiff one
@@ -290,7 +291,7 @@ def test_sphere_in_extensional_flow_runs_to_its_horizon():
     sphere is the sphere of volume V0; the sphere is also locked (stepper.sphere_constraints):
     measured 9 accepted steps, none rejected (13 without the lock), the sphere carried by the
     flow as a rigid sphere."""
-    run, rec = simulate(SPHERE_EXT, **EULER)    # the centroid is compared with euler's half steps
+    run, rec = simulate(SPHERE_EXT)    # the centroid is compared with euler's half steps
     inv = invariants("sphere in extensional flow, p = 8", run, rec)
     assert inv["rejected"] == {} and inv["accepted"] <= 12
     S = run.stepper.surface
@@ -328,7 +329,7 @@ def test_frames_land_on_the_output_times():
     rejected steps; after: 21 frames at t = 0, 1, ..., 20, 33 accepted, 2 rejected (the steps
     of the relaxed shape would grow to 5.7, the frames cap them at 1); 29 accepted, 1 rejected
     with the error estimate of the shapes (Run._doubling_error, issue 15 part 3)."""
-    run, rec = simulate(RELAX, **EULER)         # the step counts above are euler's
+    run, rec = simulate(RELAX)         # the step counts above are euler's
     inv = invariants("prolate v = 0.9 relaxing, T = 20, frames every 1, p = 6", run, rec)
     times = np.array([f["time"] for f in rec.frames])
     assert np.abs(times - np.arange(21)).max() < 1e-12
@@ -388,7 +389,7 @@ shape = "oblate"
 reduced_volume = 0.9
 bending_modulus = 0.1
 """
-    run, rec = simulate(text, **{"-ves_adapt": "none"}, **EULER)   # 10^4 euler steps (sdc: test_stability_sdc)
+    run, rec = simulate(text, **{"-ves_adapt": "none"})   # 10^4 euler steps (sdc: test_stability_sdc)
     inv = invariants("10^4 steps of one vesicle in shear, p = 6", run, rec)
     assert inv["accepted"] == 10000
 
@@ -438,7 +439,7 @@ def _fail_on(monkeypatch, calls, kind):
 @pytest.mark.parametrize("kind, reason", [("ksp", "ksp"), ("nan", "nonfinite")])
 def test_injected_failure_is_rejected_and_recovered(monkeypatch, kind, reason):
     _fail_on(monkeypatch, {4}, kind)
-    run, rec = simulate(ONE, **EULER)
+    run, rec = simulate(ONE)
     inv = invariants(f"injected {kind} failure on the 4th solve", run, rec)
     assert inv["rejected"] == {reason: 1}
 
