@@ -19,6 +19,9 @@ import time
 import numpy as np
 
 from tests import harness
+from vesflow import options as O, scene as S
+from vesflow.errors import NumericalFailure
+from vesflow.simulation import Run
 
 CASES = {
     "detector-0.15": (harness.pair_scene(1.3, 0.15, 6, 6.0, every=6.0, dt=0.05), {"-ves_adapt_tol": 0.15}),
@@ -30,9 +33,24 @@ CASES = {
 }
 
 
+def simulate(text, options):
+    """harness.simulate with the options that override scene keys (-ves_repulsion_radius) applied."""
+    getter = O.dict_getter(options)
+    sc = O.apply_overrides(S.parse_scene(text), getter)
+    opts = O.read_options(getter, sc)
+    rec = harness.Recorder(opts["q_near"])
+    run = Run(sc, opts, writer=rec)
+    failure = None
+    try:
+        run.run()
+    except NumericalFailure as e:
+        failure = str(e)
+    return run, rec, failure
+
+
 def run_case(text, options, steps=False):
     t0 = time.process_time()
-    run, rec, failure = harness.simulate(text, allow_failure=True, **options)
+    run, rec, failure = simulate(text, options)
     cpu = time.process_time() - t0
     if steps:                                   # t, dt, outcome of every attempted step
         for r in rec.steps:
