@@ -34,7 +34,7 @@ LAYERS = [
     ("operator", ["vesflow.operator"]),
     ("solver", ["vesflow.solver", "vesflow.precond", "vesflow.costs"]),
     ("stepping", ["vesflow.stepping", "vesflow.stepper", "vesflow.sdc", "vesflow.simulation",
-                  "vesflow.collision", "vesflow.correction", "vesflow.reparam"]),
+                  "vesflow.collision", "vesflow.contact", "vesflow.correction", "vesflow.reparam"]),
     ("output", ["vesflow.io", "vesflow.vtk_export"]),
     ("entry points", ["vesflow.cli", "vesflow.__main__", "vesflow.study", "vesflow.render"]),
 ]

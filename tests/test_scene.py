@@ -758,7 +758,7 @@ def test_read_options_defaults_and_values():
     assert (o.q_self, o.q_near, o.q_far, o.q_max) == (24, 24, 24, 48) and o.checkpoint_every == 1.0
     assert o.quad_tol == 0.0
     assert O.read_options(O.dict_getter({"-ves_q_far": 30}), sc).q_near == 30     # one grid for both
-    assert o.far == "auto" and o.adapt == "doubling" and o.adapt_beta == 0.9 and o.reparam is True
+    assert o.far == "auto" and o.ts_type == "sdc" and o.adapt == "sweeps" and o.adapt_beta == 0.75 and o.reparam is True
     assert o.reparam_dtau_max == 1e-3 and o["-ves_correct"] == "area_volume" and o["coupling"] == "implicit"
     assert o.given == frozenset()
     g = O.argv_getter(["-ves_q_self", "30", "-ves_far", "direct", "-ves_reparam", "off", "-ts_monitor",

@@ -122,14 +122,16 @@ def test_sdc_orders_two_and_three_sweeps(tight_rtol, case):
 def test_sdc_options_resolve_and_refuse_bad_combinations():
     from vesflow import options as O
     from vesflow.errors import OptionError
-    o = O.read_options(O.dict_getter({}))
-    assert (o.ts_type, o.adapt, o.ts_sdc_nodes, o.ts_sdc_sweeps) == ("euler", "doubling", 3, 2)
-    assert (o.ts_sdc_quadrature, o.adapt_beta) == ("radau", 0.9)
-    o = O.read_options(O.dict_getter({"-ts_type": "sdc"}))
-    assert (o.adapt, o.adapt_beta) == ("sweeps", 0.75)
+    o = O.read_options(O.dict_getter({}))                  # the default: sdc
+    assert (o.ts_type, o.adapt, o.ts_sdc_nodes, o.ts_sdc_sweeps) == ("sdc", "sweeps", 3, 2)
+    assert (o.ts_sdc_quadrature, o.adapt_beta) == ("radau", 0.75)
+    o = O.read_options(O.dict_getter({"-ts_type": "euler"}))
+    assert (o.adapt, o.adapt_beta) == ("doubling", 0.9)
+    o = O.read_options(O.dict_getter({"-ves_coupling": "explicit"}))   # sdc needs the implicit coupling
+    assert (o.ts_type, o.adapt) == ("euler", "doubling")
     assert O.read_options(O.dict_getter({"-ts_type": "sdc", "-ves_adapt_beta": "0.5"})).adapt_beta == 0.5
     assert O.read_options(O.dict_getter({"-ts_type": "sdc", "-ves_adapt": "doubling"})).adapt == "doubling"
-    for bad, name in [({"-ves_adapt": "sweeps"}, "-ves_adapt"), ({"-ts_type": "rk4"}, "-ts_type"),
+    for bad, name in [({"-ts_type": "euler", "-ves_adapt": "sweeps"}, "-ves_adapt"), ({"-ts_type": "rk4"}, "-ts_type"),
                       ({"-ts_type": "sdc", "-ves_coupling": "explicit"}, "-ts_type"),
                       ({"-ts_sdc_nodes": 1}, "-ts_sdc_nodes"), ({"-ts_sdc_sweeps": 0}, "-ts_sdc_sweeps"),
                       ({"-ts_sdc_quadrature": "gauss"}, "-ts_sdc_quadrature"), ({"-ves_adapt_beta": "1.5"}, "-ves_adapt_beta")]:

@@ -5,7 +5,8 @@ no intersection (signed distance of every grid point to the other surfaces > 0 a
 frame), area and volume drift, mesh quality (the reparameterization energy E of the paper,
 relative to its start), GMRES converged on every accepted step (a failed solve is a
 rejection, counted by reason), no vesicle lost (all centroids finite and in the domain).
-The fast cases run in `make test`, the long ones (`slow`) in `make test-all`.
+The fast cases run in `make test`, the long ones (`slow`) in `make test-all`.  The runs use
+-ts_type euler (EULER below); tests/test_stability_sdc.py has the same cases with sdc, the default.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from vesflow import options as O, scene as S
+from vesflow.costs import solves_per_step
 from vesflow.errors import ConvergenceError
 from vesflow.simulation import Run
 from vesflow.stepper import Stepper
@@ -30,8 +32,14 @@ class Recorder(harness.Recorder):
         return {"angle": _long_axis_angle(coefficients, p)}
 
 
+# This suite runs with -ts_type euler, the scheme its figures (step, rejection and solve counts,
+# measured gaps and angles) were computed with; tests/test_stability_sdc.py runs its hard cases
+# with sdc, the default.  The fast sphere sweep runs with the default.
+EULER = {"-ts_type": "euler"}
+
+
 def simulate(text, **options):
-    return harness.simulate(text, recorder=Recorder, **options)
+    return harness.simulate(text, recorder=Recorder, **{**EULER, **options})
 
 
 def invariants(name, run, rec, *, area_tol=1e-6, mesh_factor=5.0, box=50.0):
@@ -84,7 +92,7 @@ def test_near_contact_in_shear():
     its last good state (the failure path tested below) instead of crossing."""
     text = harness.pair_scene(1.25, 0.1, p=8, T=5.25, kb=1.0,
                  extra="[repulsion]\nradius = 0.01")
-    run, rec = simulate(text)
+    run, rec = simulate(text)                             # the figures above are euler's
     inv = invariants("near contact in shear", run, rec)
     assert inv["min_gap"] < 0.01                                   # the case is as hard as announced
 
@@ -224,7 +232,7 @@ def test_viscosity_contrast_10_tumbles():
     (p = 8, T = 8): 1.55 -> -0.15 rad, monotone, slowest near 0 (0.12 rad per unit time), so a
     full turn through -pi/2 would need T ~ 20."""
     sc_text = LAMBDA10.format(p=8, T=8.0, every=0.25)
-    run, rec = simulate(sc_text)
+    run, rec = simulate(sc_text)                          # the angles above are euler's
     invariants("lambda = 10 in shear, p = 8, T = 8", run, rec)
     angles = np.array([f["angle"] for f in rec.frames])
     print("[stability] long-axis angle in the shear plane:", np.round(angles, 2).tolist())
@@ -248,7 +256,7 @@ shape = "ellipsoid"
 axes = [1.0, 1.0, 2.5]
 bending_modulus = 1.0
 """
-    run, rec = simulate(text)
+    run, rec = simulate(text)      # the first-order step's stiffness is what is tested
     inv = invariants("too large first dt (0.9) for an ellipsoid 1:2.5 relaxing", run, rec)
     assert inv["rejected"].get("error_estimate", 0) >= 1
     assert not rec.steps[0][2] and rec.steps[0][1] == 0.9        # the first try was the stiff one
@@ -283,7 +291,7 @@ def test_sphere_in_extensional_flow_runs_to_its_horizon():
     sphere is the sphere of volume V0; the sphere is also locked (stepper.sphere_constraints):
     measured 9 accepted steps, none rejected (13 without the lock), the sphere carried by the
     flow as a rigid sphere."""
-    run, rec = simulate(SPHERE_EXT)
+    run, rec = simulate(SPHERE_EXT)    # the centroid is compared with euler's half steps
     inv = invariants("sphere in extensional flow, p = 8", run, rec)
     assert inv["rejected"] == {} and inv["accepted"] <= 12
     S = run.stepper.surface
@@ -321,7 +329,7 @@ def test_frames_land_on_the_output_times():
     rejected steps; after: 21 frames at t = 0, 1, ..., 20, 33 accepted, 2 rejected (the steps
     of the relaxed shape would grow to 5.7, the frames cap them at 1); 29 accepted, 1 rejected
     with the error estimate of the shapes (Run._doubling_error, issue 15 part 3)."""
-    run, rec = simulate(RELAX)
+    run, rec = simulate(RELAX)         # the step counts above are euler's
     inv = invariants("prolate v = 0.9 relaxing, T = 20, frames every 1, p = 6", run, rec)
     times = np.array([f["time"] for f in rec.frames])
     assert np.abs(times - np.arange(21)).max() < 1e-12
@@ -334,18 +342,19 @@ def test_frames_land_on_the_output_times():
 def test_restart_continues_the_frame_sequence(tmp_path):
     """A run stopped by -ts_max_steps between output times and restarted writes the frames of
     the uninterrupted run at the same times and ends in the same state (to the GMRES tolerance); restarted with another
-    -ves_output_every it goes on at the next multiple of the new interval."""
+    -ves_output_every it goes on at the next multiple of the new interval.  Pinned to -ts_type
+    euler: the stop after 14 steps (1 < t < 2) is counted in euler's steps."""
     from vesflow import cli
     from vesflow.io import read_checkpoint, read_output
     scene = tmp_path / "relax.toml"
     scene.write_text(RELAX.replace("horizon = 20.0", "horizon = 6.0"))
     whole, part, same, other = (tmp_path / f"{n}.h5" for n in ("whole", "part", "same", "other"))
-    assert cli.main(["run", str(scene), "-o", str(whole)]) == 0
-    assert cli.main(["run", str(scene), "-o", str(part), "-ts_max_steps", "14"]) == 0
+    assert cli.main(["run", str(scene), "-o", str(whole), "-ts_type", "euler"]) == 0
+    assert cli.main(["run", str(scene), "-o", str(part), "-ts_max_steps", "14", "-ts_type", "euler"]) == 0
     t_stop = float(read_checkpoint(str(part))["time"])
-    assert cli.main(["run", "--restart", str(part), "-o", str(same), "-ts_max_steps", "1000"]) == 0
+    assert cli.main(["run", "--restart", str(part), "-o", str(same), "-ts_max_steps", "1000", "-ts_type", "euler"]) == 0
     assert cli.main(["run", "--restart", str(part), "-o", str(other), "-ts_max_steps", "1000",
-                     "-ves_output_every", "0.5"]) == 0
+                     "-ves_output_every", "0.5", "-ts_type", "euler"]) == 0
     a, b, c = read_output(str(whole)), read_output(str(same)), read_output(str(other))
     print(f"\n[stability] restart at t = {t_stop:.4g}: frames {[float(t) for t in c.time]}")
     assert 1 < t_stop < 2
@@ -380,7 +389,7 @@ shape = "oblate"
 reduced_volume = 0.9
 bending_modulus = 0.1
 """
-    run, rec = simulate(text, **{"-ves_adapt": "none"})
+    run, rec = simulate(text, **{"-ves_adapt": "none"})   # 10^4 euler steps (sdc: test_stability_sdc)
     inv = invariants("10^4 steps of one vesicle in shear, p = 6", run, rec)
     assert inv["accepted"] == 10000
 
@@ -406,7 +415,8 @@ reduced_volume = 0.9
 
 def _fail_on(monkeypatch, calls, kind):
     """Make Stepper.step fail (GMRES failure or NaN) on the given call numbers (a set, or
-    'from:k' for every call from k on)."""
+    'from:k' for every call from k on).  Stepper.step is euler's step: the tests that use it
+    are pinned to -ts_type euler (sdc's solves: tests/test_stability_sdc.py)."""
     real = Stepper.step
     count = {"n": 0}
 
@@ -442,14 +452,14 @@ def test_unrecoverable_failure_saves_last_good_state_and_exits_3(monkeypatch, tm
     scene.write_text(ONE)
     out = tmp_path / "one.h5"
     _fail_on(monkeypatch, ("from", 10), kind)         # 3 solves per step: steps 1-3 succeed
-    status = cli.main(["run", str(scene), "-o", str(out), "-ves_max_rejects", "4"])
+    status = cli.main(["run", str(scene), "-o", str(out), "-ves_max_rejects", "4", "-ts_type", "euler"])
     assert status == 3
     ck = read_checkpoint(str(out))
     print(f"\n[stability] unrecoverable {kind}: exit {status}, checkpoint at t = {float(ck['time']):.4g}")
     assert float(ck["time"]) > 0 and np.all(np.isfinite(np.asarray(ck["coeffs"])))
     # the checkpoint is the state after the last accepted step, and the run can go on from it
     monkeypatch.undo()
-    assert cli.main(["run", "--restart", str(out)]) == 0
+    assert cli.main(["run", "--restart", str(out), "-ts_type", "euler"]) == 0
     assert float(read_checkpoint(str(out))["time"]) == pytest.approx(0.5)
 # ------------------------------------------------------------------ the sphere / near-sphere sweep (issue 15)
 SWEEP_SHAPES = [("sphere", 1.0)] + [(s, v) for v in (0.999, 0.99, 0.95, 0.9) for s in ("oblate", "prolate")]
@@ -495,9 +505,9 @@ every = {T}
 """
 
 
-def run_sweep_case(shape, v, config, flow, gravity, lam, p, T):
+def run_sweep_case(shape, v, config, flow, gravity, lam, p, T, options=None):
     sc = S.parse_scene(sweep_scene(shape, v, config, flow, gravity, lam, p, T))
-    opts = O.read_options(O.dict_getter({}), sc)
+    opts = O.read_options(O.dict_getter(options or {}), sc)
     rec = Recorder(opts["q_near"])
     run = Run(sc, opts, writer=rec)
     if flow == "taylor_green":          # free space, the field of paper (4.1) (as _taylor_green_run)
@@ -507,7 +517,7 @@ def run_sweep_case(shape, v, config, flow, gravity, lam, p, T):
     name = (f"sweep {shape} v = {v}, {'single' if config == 'single' else f'pair gap {config}'}, {flow}, "
             f"{'gravity' if gravity else 'no gravity'}, lambda = {lam:g}, p = {p}, T = {T:g}")
     inv = invariants(name, run, rec)
-    its = [r[3] / 3 for r in rec.steps if r[2]]        # three solves per doubling step
+    its = [r[3] / solves_per_step(opts) for r in rec.steps if r[2]]      # euler + doubling: 3, sdc: 10
     cond = run.stepper.cond_max
     print(f"[stability] {name}: preconditioned condition estimate <= {cond:.3g}, GMRES iterations per solve "
           f"<= {max(its):.0f} (mean {np.mean(its):.1f})")
@@ -546,7 +556,9 @@ def test_sphere_sweep_fast(case):
 @pytest.mark.slow
 @pytest.mark.parametrize("case", _sweep_cases(), ids=lambda c: "-".join(map(str, c)))
 def test_sphere_sweep(case):
-    run_sweep_case(*case, p=8, T=0.5)
+    """Pinned to -ts_type euler: the figures of docs/robustness.md section 5 are euler's (the 144
+    cases take about an hour with it)."""
+    run_sweep_case(*case, p=8, T=0.5, options=EULER)
 
 
 def test_a_run_without_a_writer_lands_on_the_output_times():

@@ -535,12 +535,16 @@ def test_estimate_follows_the_storage_formulas():
 def test_estimate_of_a_time_step_and_the_memory_verdict():
     from vesflow.costs import ITERATIONS_PER_SOLVE, estimate
     from vesflow.scene import parse_scene
-    e = estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)))
-    assert e.solves_per_step == 3                       # -ves_adapt doubling: dt, then two dt/2
+    # the euler figures (pinned to -ts_type euler): -ves_adapt doubling, dt then two dt/2
+    e = estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)), {"ts_type": "euler"})
+    assert e.solves_per_step == 3
     assert e.t_step == pytest.approx(3 * (e.t_setup + ITERATIONS_PER_SOLVE * e.t_iteration))
     assert "per time step" in str(e) and "RAM: fits (needs" in str(e)
-    one = estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)), {"adapt": "none"})
+    one = estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)), {"ts_type": "euler", "adapt": "none"})
     assert one.solves_per_step == 1 and one.t_step == pytest.approx(e.t_step / 3)
+    # the default, sdc with 3 Radau nodes and 2 sweeps: 2 substeps x (1 + 2 x 2) solves
+    assert estimate(parse_scene(scene_text(PAIR_CLOSE, p=6))).solves_per_step == 10
+    assert estimate(parse_scene(scene_text(PAIR_CLOSE, p=6)), {"ts_sdc_quadrature": "lobatto"}).solves_per_step == 11
 
 
 def test_check_prints_effects_costs_and_takes_overrides():

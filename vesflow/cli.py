@@ -396,6 +396,8 @@ def _run(rest, stop):
         print(f"vesflow: done at t = {run.t:g}: {run.counts['accepted']} accepted, {run.counts['rejected']} "
               f"rejected steps; time {tm['total']:.1f} s (setup {tm['setup']:.1f}, self {tm['self']:.1f}, "
               f"near {tm['near']:.1f}, far {tm['far']:.1f}, repar {tm['repar']:.1f})"
+              + (f"; {run.contacts.count} steps in contact separated (docs/explanation/contacts.md)"
+                 if run.contacts is not None and run.contacts.count else "")
               + (f"; first step after {run.first_step_at - _T_MAIN:.2f} s (imports, shapes, caches)"
                  if run.first_step_at is not None and _T_MAIN is not None else ""))
     return 0

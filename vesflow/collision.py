@@ -14,7 +14,17 @@ from .surface import Surface
 
 
 def signed_gaps(surface, q, period=None, part=None, stats=None):
-    """Signed distances of every near (point, other vesicle) pair: (pairs (P, 2), distances (P,)).
+    """Signed distances of every near (point, other vesicle) pair: (pairs (P, 2), distances (P,));
+    near_projection's, without the projection."""
+    pairs, proj = near_projection(surface, q, period, part, stats)
+    return pairs, (proj.signed_distance if proj is not None else np.zeros(0))
+
+
+def near_projection(surface, q, period=None, part=None, stats=None):
+    """Closest points on the other vesicles of every near (point, other vesicle) pair: (pairs
+    (P, 2), vesflow.layerpot.near.Projection or None if no pair): pairs[:, 0] a p-grid point
+    (vesicle-major), pairs[:, 1] the other vesicle; the projection's signed_distance and its
+    normal (outward of the other vesicle).
     ``period``: triply periodic box (minimum image, vesflow.layerpot.near.near_pairs_images).
     ``part`` (vesflow.parallel.Partition): only the p-grid points of this rank's vesicles,
     against its own surfaces and those of the other ranks' vesicles whose bounding box lies
@@ -48,13 +58,12 @@ def signed_gaps(surface, q, period=None, part=None, stats=None):
     src_off = np.arange(len(known) + 1, dtype=np.int64) * Tq.npts
     pairs, tpos = near_pairs_images(trg, trg_id, src, src_id, src_off, h, period)
     if not len(pairs):
-        return pairs, np.zeros(0)
+        return pairs, None
     rows = np.searchsorted(known, pairs[:, 1])
     srcv = src.reshape(len(known), -1, 3)
     d2 = np.einsum("pmk,pmk->pm", srcv[rows] - tpos[:, None], srcv[rows] - tpos[:, None])
     it, jp = np.divmod(d2.argmin(axis=1), Tq.nlon)
-    proj = Projection(coeffs, p, tpos, rows, Tq.theta[it], Tq.phi[jp])
-    return pairs, proj.signed_distance
+    return pairs, Projection(coeffs, p, tpos, rows, Tq.theta[it], Tq.phi[jp])
 
 
 def contacts(surface, q, period=None, part=None, stats=None):

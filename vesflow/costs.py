@@ -48,7 +48,7 @@ NEAR_EVALS = 9                   # kernel evaluations per near pair and source p
 # doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
-SOLVES_PER_STEP = {"doubling": 3, "none": 1}       # other schemes (SDC sweeps): counted as 1 solve per sweep pass
+SOLVES_PER_STEP = {"doubling": 3}                 # step attempts per step: one, or one and two halves
 NEAR_COUNT_MAX_POINTS = 1_200_000                 # count the near pairs when N M is below (~8 s CPU at the limit)
 # Weights of the preconditioner's rebuild rule (pc_rebuild_iterations), in seconds of one thread:
 # forces a + b p^3 per vesicle and iteration, bytes per second of the GEMVs, block and LU per
@@ -334,8 +334,22 @@ def estimate(scene, opts=None, near=True, calibration=None):
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
-                    solves_per_step=SOLVES_PER_STEP.get(o.get("adapt") or "doubling", 1), threads=threads,
+                    solves_per_step=solves_per_step(o), threads=threads,
                     mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen, ewald_best=ewald_best)
+
+
+def solves_per_step(o):
+    """Solves of one step attempt: euler 1, sdc (vesflow.sdc) M (2K + 1), + 1 with Lobatto nodes
+    (M = nodes - 1, K sweeps); x 3 with -ves_adapt doubling.  o: options, the defaults for what
+    it lacks (sdc with 3 Radau nodes and 2 sweeps: 10; -ves_coupling explicit: euler)."""
+    ts = o.get("ts_type") or ("euler" if o.get("coupling") == "explicit" else "sdc")
+    adapt = o.get("adapt") or ("sweeps" if ts == "sdc" else "doubling")
+    n = 1
+    if ts == "sdc":
+        n = (int(o.get("ts_sdc_nodes") or 3) - 1) * (2 * int(o.get("ts_sdc_sweeps") or 2) + 1) + (
+            (o.get("ts_sdc_quadrature") or "radau") == "lobatto")
+    return n * SOLVES_PER_STEP.get(adapt, 1)
+
 
 
 def _threads():

@@ -127,9 +127,10 @@ REGISTRY: tuple[Option, ...] = (
        "lagged to the right-hand side (explicit: cheaper, less stable)", "solver",
        choices=("implicit", "explicit")),
     # -- time stepping ---------------------------------------------------------------------------
-    _O("-ts_type", str, "euler", "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
-       "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py)",
-       "time stepping", choices=("euler", "sdc")),
+    _O("-ts_type", str, None, "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
+       "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py; cheaper "
+       "than euler at the same error but the loosest, docs/accuracy_cost.md)",
+       "time stepping", choices=("euler", "sdc"), default_text="sdc (euler with -ves_coupling explicit)"),
     _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
     _O("-ts_sdc_quadrature", str, "radau", "nodes of an sdc step: lobatto (Gauss-Lobatto, order 2 nodes - 2) "
@@ -153,6 +154,9 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_max_rejects", int, 20, "consecutive rejected steps before the run stops (exit status 3)",
        "time stepping", ge=1),
     _O("-ves_collision", bool, True, "reject a step whose surfaces touch or cross", "time stepping"),
+    _O("-ves_contact", bool, True, "a touching step that starts in contact (gap below 1% of the grid spacing) "
+       "moves the touching vesicles apart rigidly instead of being rejected: the lubrication layer is not "
+       "resolved there (vesflow/contact.py, docs/explanation/contacts.md)", "time stepping"),
     _O("-ts_max_steps", int, None, "stop after this many accepted steps", "time stepping", ge=0,
        default_text="none"),
     _O("-ts_monitor", bool, False, "print one line per attempted step", "time stepping"),
@@ -383,6 +387,8 @@ def read_options(getter, scene=None) -> OptionValues:
                 _fail(OPTIONS[f"-ves_{key}"], vals[key], f"must be <= -ves_q_max = {vals['q_max']}")
         if vals["checkpoint_every"] is None:
             vals["checkpoint_every"] = scene.output.every
+    if vals["ts_type"] is None:        # sdc integrates the velocity field: lagged coupling is not it
+        vals["ts_type"] = "euler" if vals["coupling"] == "explicit" else "sdc"
     if vals["adapt"] is None:
         vals["adapt"] = "sweeps" if vals["ts_type"] == "sdc" else "doubling"
     elif vals["adapt"] in ("sweeps", "contraction") and vals["ts_type"] != "sdc":

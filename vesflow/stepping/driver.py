@@ -17,7 +17,8 @@ from ..errors import ConvergenceError, NumericalFailure
 
 class Driver:
     """Set up by a subclass (vesflow.simulation.Run): state, stepper, integrator, adaptor, post
-    (PostStep), quadrature (QuadratureAdaptor), monitors, writer (or None), timers, and
+    (PostStep), quadrature (QuadratureAdaptor), contacts (vesflow.contact.Contacts or None), monitors,
+    writer (or None), timers, and
     area0 / volume0 / n_accepted."""
 
     def _start_loop(self):
@@ -60,6 +61,11 @@ class Driver:
                     cand.coeffs = self._post_processed(raw, False)
                     touching = post.touching(cand.coeffs)
                     post.reparam_skipped += int(not touching)
+            if touching and self.contacts is not None:      # in contact: separate (vesflow.contact)
+                separated = self.contacts.resolve(cand.coeffs, self.state.coeffs, self.q_near)
+                if separated is not None:
+                    cand.coeffs = separated
+                    touching = post.touching(cand.coeffs)
             if touching:
                 return None, "collision", its, err
         return cand, "accepted", its, err

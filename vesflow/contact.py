@@ -1,0 +1,102 @@
+"""Contacts the discretization cannot resolve: the separation of a touching candidate.
+
+At a given p the lubrication layer between two close surfaces is not resolved: at p = 6 a
+sheared pair closes at 0.03-0.06 per unit time at every gap from 3e-2 down to 1e-5
+(docs/explanation/contacts.md), so once a run resolves the approach no step avoids contact and
+halving dt after each collision rejection (paper 3.3) only approaches the contact time until
+dt < -ves_dt_min ends the run.  A candidate that touches is therefore treated by what it is:
+
+- the step started at a gap g0 >= ZONE h (h = sqrt(A_max / (2 p (p + 1))), the p-grid spacing):
+  the step jumped across a gap it should have resolved (an overshoot); rejected, dt halved;
+- g0 < ZONE h: the surfaces are in contact at this resolution; the touching vesicles are moved
+  apart rigidly (a projection onto g >= 0 like the area/volume correction onto A, V: no change
+  of shape, area, volume or parameterization) until the smallest gap is TARGET h, each of a
+  touching pair (i, j) by the share R_j / (R_i + R_j) of the shift along the normal of the
+  closest point (Stokes mobility ~ 1 / R: the pair's mean position is kept for equal radii).
+
+Only steps that the collision check would have rejected are changed: a run without such a
+step is bit-identical with and without it (tests/test_contacts.py).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import collision
+from .surface import Surface
+
+ZONE = 1e-2      # contact zone: start gap below ZONE h (p = 6, unit radius: 3.9e-3)
+TARGET = 5e-3    # the separated state's smallest gap, TARGET h (half the zone)
+ROUNDS = 8       # separation rounds (a shift can bring a third vesicle into contact)
+
+
+def grid_spacing(surface):
+    """h = sqrt(A_max / (2 p (p + 1))): the spacing of the p-grid of the largest vesicle."""
+    p = surface.p
+    return float(np.sqrt(surface.area().max() / (2.0 * p * (p + 1))))
+
+
+def min_gap(coeffs, p, q, period=None):
+    return collision.min_gap(Surface(coeffs, p), q, period)
+
+
+def separate(coeffs, p, q, period=None, target=None):
+    """coeffs with every pair of vesicles closer than target (default TARGET h) moved apart
+    rigidly to a smallest gap of about target, or None if ROUNDS rounds do not clear them.
+    Returns (coefficients, total shift length)."""
+    surf = Surface(np.array(coeffs, dtype=float), p)
+    target = TARGET * grid_spacing(surf) if target is None else float(target)
+    R = surf.effective_radius()
+    npts = surf.points().shape[1]
+    moved = 0.0
+    for _ in range(ROUNDS):
+        pairs, proj = collision.near_projection(surf, q, period)
+        if proj is None:
+            return surf.coeffs, moved
+        d = proj.signed_distance
+        close = d < 0.5 * target
+        if not close.any():
+            return surf.coeffs, moved
+        own = pairs[:, 0] // npts
+        other = pairs[:, 1]
+        shift = np.zeros((surf.n_vesicles, 3))
+        # the closest point of each unordered pair (i, j) sets its shift
+        key = np.minimum(own, other) * surf.n_vesicles + np.maximum(own, other)
+        for k in np.unique(key[close]):
+            sel = np.nonzero(close & (key == k))[0]
+            e = sel[np.argmin(d[sel])]
+            i, j = int(own[e]), int(other[e])
+            s = (target - d[e]) * proj.normal[e]            # moves i out of j along j's normal
+            shift[i] += R[j] / (R[i] + R[j]) * s
+            shift[j] -= R[i] / (R[i] + R[j]) * s
+            moved += float(target - d[e])
+        surf = surf.translated(shift)
+    pairs, proj = collision.near_projection(surf, q, period)
+    if proj is None or proj.signed_distance.min() > 0:
+        return surf.coeffs, moved
+    return None, moved
+
+
+class Contacts:
+    """The contact step of a Run: resolve(candidate, start) -> separated coefficients or None
+    (an overshoot, or not cleared).  Keeps the record of the separations."""
+
+    def __init__(self, p, period=None):
+        self.p, self.period = p, period
+        self.log = []          # (start gap, candidate gap, shift) of every separated step
+
+    def resolve(self, candidate, start, q):
+        """candidate separated (or None) when the step from start (coefficients) touches; q the
+        collision check's grid."""
+        p = self.p
+        h = grid_spacing(Surface(start, p))
+        g0 = min_gap(start, p, q, self.period)
+        if not g0 < ZONE * h:
+            return None
+        out, moved = separate(candidate, p, q, self.period, TARGET * h)
+        if out is not None:
+            self.log.append((g0, min_gap(candidate, p, q, self.period), moved))
+        return out
+
+    @property
+    def count(self):
+        return len(self.log)
