@@ -10,8 +10,8 @@ or as strings; they are converted and checked here, and every problem raises
     opts = read_options(getter, scene)          # every other knob, defaults resolved
     opts.q_self, opts.adapt, opts["-ves_far"]
 
-Nothing here imports petsc4py at module level.  The list is in docs/scene.md and
-``help_text()`` (``vesflow run -help``).
+Nothing here imports petsc4py at module level.  The list is in docs/reference/options.md
+(``markdown_text()``, ``python -m vesflow.options --markdown``) and ``help_text()`` (``vesflow run -help``).
 """
 from __future__ import annotations
 
@@ -506,3 +506,40 @@ def help_text() -> str:
             lines.append(f"  {(o.name + ' ' + o.metavar).ljust(width)}default: {o.shown_default}")
             lines.append(f"      {o.help}{extra}{rng}")
     return "\n".join(lines)
+
+
+def markdown_text() -> str:
+    """docs/reference/options.md: the registry as Markdown tables, one per group
+    (``python -m vesflow.options --markdown > docs/reference/options.md``)."""
+    def cell(s: str) -> str:
+        return s.replace("|", "\\|")
+
+    lines = ["# Options", "",
+             "Every vesflow option, generated from the option registry (`vesflow/options.py`) by",
+             "`python -m vesflow.options --markdown > docs/reference/options.md`; `vesflow run -help`",
+             "prints the same list.  A command-line option overrides the scene's value of the same knob",
+             "and the options files before it; PETSc's own options (`-ksp_rtol`, `-ksp_monitor`,",
+             "`-pc_type`, `-log_view`, ...) work as usual.  A value outside its range, or an unknown",
+             "`-ves_` option, stops the run before any work with a one-line message (exit status 2)."]
+    for g in GROUPS:
+        lines += ["", f"## {g[0].upper() + g[1:]}", "",
+                  "| option | value | default | what it sets |", "|---|---|---|---|"]
+        for o in REGISTRY:
+            if o.group != g:
+                continue
+            what = o.help
+            if o.type in (int, float) and any(x is not None for x in (o.gt, o.ge, o.lt, o.le)):
+                what += "; " + _range_text(o)
+            if o.scene_key:
+                what += f"; overrides the scene key `{o.scene_key}`"
+            if o.alias_of:
+                what += f"; another spelling of `{o.alias_of}`"
+            lines.append(f"| `{o.name}` | `{cell(o.metavar)}` | {cell(o.shown_default)} | {cell(what)} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    import sys
+    if sys.argv[1:] != ["--markdown"]:
+        sys.exit("usage: python -m vesflow.options --markdown   (the options reference, docs/reference/options.md)")
+    sys.stdout.write(markdown_text())
