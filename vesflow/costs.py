@@ -18,7 +18,7 @@ operators (one GEMV each: they are streamed from memory), the far field (direct 
 vesflow.layerpot.far's own model), and the near correction (9 Mq kernel evaluations per near
 pair).  Time per step: the solves of one step (3 with -ves_adapt doubling), each its set-up and
 ITERATIONS_PER_SOLVE GMRES iterations.  The constants
-below were measured on the development machine (2 cores; docs/results.md); expect the
+below were measured on the development machine (2 cores; docs/explanation/validation.md); expect the
 right order of magnitude, not the digits.
 """
 from __future__ import annotations
@@ -38,11 +38,11 @@ PC_SETUP_S = (0.26, 4.0)         # seconds per vesicle to build and factor its 4
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 # seconds per (near target or line point, source) kernel evaluation of one thread, the near
 # correction in blocks (stokes.*_sum_blocks): 4.24 s for 88189 pairs at p = 16, q = 32
-# (benchmarks/iteration.py --n 512, docs/far_field.md); then 0.50 -> 0.32 s per iteration at
+# (benchmarks/iteration.py --n 512, docs/explanation/far_field.md); then 0.50 -> 0.32 s per iteration at
 # N = 64 with the blocks summed by the vectorized range sums of pairsum.h: x 0.64
 NEAR_SECONDS_PER_EVAL = 1.6e-9
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
-# doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
+# doubling steps of 3 solves), 6-10 in docs/explanation/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
 SOLVES_PER_STEP = {"doubling": 3, "none": 1}       # other schemes (SDC sweeps): counted as 1 solve per sweep pass

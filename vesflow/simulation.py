@@ -178,7 +178,7 @@ class Run:
         # the state that will be kept, and drop the reparameterization of this step if it
         # alone brings the surfaces into contact.  In between, the reparameterization with its
         # projection iterated (`reparam.project_onto`: shape change below the truncation error,
-        # not used everywhere because it keeps the descent from converging, docs/robustness.md)
+        # not used everywhere because it keeps the descent from converging, docs/explanation/robustness.md)
         raw = st.coeffs.copy()
         st.coeffs = self._post_processed(raw, self.opts["reparam"], dt=dt)
         check = self.opts["collision"] and st.surface.n_vesicles > 1
@@ -255,7 +255,7 @@ class Run:
 
         A sphere of fixed area and volume cannot deform, yet the linearized inextensibility
         lets the step deform it at O(dt) (the l = 2 velocity of a sphere in a strain,
-        docs/dynamics.md): one step deforms by dt u, two half steps by less (the first half
+        docs/explanation/dynamics.md): one step deforms by dt u, two half steps by less (the first half
         step leaves a near-sphere whose tension locks the deformation), and the raw difference
         is O(dt), driving dt to dt_min.  After the correction (for a sphere: the sphere of volume
         V0) both candidates differ by the O(dt^2) truncation error as for any other shape, in

@@ -225,7 +225,7 @@ class Stepper:
         """gmres; fgmres when the default block-Jacobi PC is float32 (-ves_pc_precision single):
         left-preconditioned GMRES with a float32 PC leaves the solution 1.3e-7 (relative) from
         double's at any rtol, fgmres within 3e-14 at rtol 1e-8 in the same iterations (one
-        solve of the accuracy-cost pair, p = 12; docs/parallel.md)."""
+        solve of the accuracy-cost pair, p = 12; docs/explanation/parallel.md)."""
         from .precond import PC_DTYPES
         if self.pc_precision is not None:
             dtype = PC_DTYPES[self.pc_precision]
@@ -260,7 +260,7 @@ LOCK_STIFFNESS = 1e3  # K of the locking force -K (mu / R) (u.n)_{n >= 2} n on s
 def sphere_constraints(surface, op, lock=True):
     """op with the two constraints of a sphere (reduced volume above 1 - SPHERE_TOL) set in it:
     StepOperator.gauge and .lock, which its apply, membrane_force and block parts include
-    (docs/dynamics.md, "Spheres and near-spheres", "Locked shape").
+    (docs/explanation/dynamics.md, "Spheres and near-spheres", "Locked shape").
 
     Gauge.  On a sphere a constant tension exerts no force (2 H sigma n with H constant; the
     single layer of n vanishes on and off a closed surface): its column is zero and the n = 0

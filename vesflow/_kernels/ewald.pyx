@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/far_field.md, "Ewald").
+"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/explanation/far_field.md, "Ewald").
 
 With ``r = x - y`` (target minus source), ``z = xi r``, ``e = exp(-z^2)`` and the kernels of
 method reference section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
@@ -274,7 +274,7 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
     the six components (00, 11, 22, 01, 02, 12) of S (if ``double``);
     W: (2, n0, n1, n2) gets U_0 + i U_1 and U_2, so that the type-2 transform of W holds
     u_0 + i u_1 and u_2.  The modes with an index -n/2 (no mirror -k on the grid) are set to
-    0: they are beyond k_max (docs/far_field.md).
+    0: they are beyond k_max (docs/explanation/far_field.md).
     psi: (n0/2 + 1, n1/2 + 1, n2/2 + 1), Psi at |k| (Psi is even in each component of k);
     k0, k1, k2: the wave numbers of the modes (-n/2 .. n/2 - 1, times 2 pi / period).
     OpenMP over the first axis.

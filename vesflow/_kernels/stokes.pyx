@@ -13,7 +13,7 @@ All kernels use mu = 1 (the caller scales by 1/mu) and ``r = x - y`` (target min
 
   The caller multiplies the density by ``(1 - lambda_j)`` of its source vesicle.
 
-Sources carry their quadrature weight (``f_k w_k``, ``n_k w_k``; docs/conventions.md), so
+Sources carry their quadrature weight (``f_k w_k``, ``n_k w_k``; docs/explanation/conventions.md), so
 every sum is a plain sum over source points.  Every function ACCUMULATES into ``out``
 (``out += ...``): pass zeros for a plain evaluation.  Pairs at distance exactly 0 are
 skipped (the exact-zero test, never a tolerance: the quadrature rules that call these

@@ -74,7 +74,7 @@ PREFACTOR_DOUBLE = 1.5
 PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol: with tol itself the error stays below 0.25 tol at
 # 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
-# benchmarks/nufft_eps_margin.py, docs/far_field.md "Free space, fourth session"; 0.5 before)
+# benchmarks/nufft_eps_margin.py, docs/explanation/far_field.md "Free space, fourth session"; 0.5 before)
 NUFFT_EPS_FACTOR = 1.0
 # ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
 DUCC0_SIGMA = (1.3, 1.6)
@@ -86,7 +86,7 @@ DUCC0_SIGMA_MIN_EPS = 5e-11
 # vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
 # width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid), times
 # (grid / 1e7)^fft_growth (large grids cost more per point: caches); k-space multiplication per
-# mode per transform.  Fitted (fourth session, docs/far_field.md "Free space,
+# mode per transform.  Fitted (fourth session, docs/explanation/far_field.md "Free space,
 # fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
 # and periodic N = 125 (dense) and 512 at 3 and 1 cutoffs, p = 16, tol 1e-6: the NUFFT parts
 # within 0.6-1.7x of each measurement (rms 21 %), the real space within 20 %, the totals at the
@@ -218,7 +218,7 @@ def _exponents(lt, double_layer=True):
     real-space kernel at rc over T is ``~ (xi rc)^3 exp(-xi^2 rc^2)``; its Fourier sum carries one
     more power of k), the Stokeslet's ``P = 0.5`` when the double layer is absent (measured on
     the scene of benchmarks/far_field.py: error 0.1-0.3 tol with 0.5, 0.7-0.8 tol with 0,
-    0.006-0.03 tol with 1.5; docs/far_field.md)."""
+    0.006-0.03 tol with 1.5; docs/explanation/far_field.md)."""
     pref = PREFACTOR_DOUBLE if double_layer else PREFACTOR_SINGLE
     zr = lt + C_REAL
     zf = lt + C_FOURIER
@@ -389,7 +389,7 @@ class _Nufft:
         key = (kind, ntr)
         if key not in self._plans:
             import finufft
-            # upsampling 1.25 is 2-3x faster than finufft's default here (docs/far_field.md)
+            # upsampling 1.25 is 2-3x faster than finufft's default here (docs/explanation/far_field.md)
             # but its kernel width is capped at 16: 2.0 below eps 1e-9
             plan = finufft.Plan(kind, self.modes, n_trans=ntr, eps=self.eps, isign=-1 if kind == 1 else 1,
                                 dtype="complex128", nthreads=self.threads, modeord=0,
@@ -406,7 +406,7 @@ class _Nufft:
             pts = self.src if kind == 1 else self.trg
             # oversampling 1.3 .. 1.6 instead of ducc0's own choice in 1.19 .. 2.51: type 1 at
             # N = 512 (1.08e6 sources, 146^3 modes) 1.64 -> 1.36-1.39 s, N = 64 0.21 -> 0.12 s
-            # (docs/far_field.md, "Speed: third session")
+            # (docs/explanation/far_field.md, "Speed: third session")
             # (ducc0 has kernels for them down to eps 5e-11; below, its own range)
             sigma = DUCC0_SIGMA if self.eps >= DUCC0_SIGMA_MIN_EPS else (1.19, 2.51)
             self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),
@@ -461,7 +461,7 @@ class EwaldSum:
     ``params`` an :class:`EwaldParams` (default: :func:`choose_params` for ``tol``);
     ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`).
 
-    ``own`` (docs/far_field.md, "The own vesicle in the set-up"): "subtract" gives the sum of
+    ``own`` (docs/explanation/far_field.md, "The own vesicle in the set-up"): "subtract" gives the sum of
     the module docstring (the own vesicle's pairs inside rc in the real-space sum, its full
     kernel subtracted); "smooth" leaves every target's own vesicle out of the real-space sum and
     subtracts nothing, so that the result ADDS ``sum_{s own} G^F(x_t - y_s) f_s`` (+ T^F) to the
@@ -537,7 +537,7 @@ class EwaldSum:
         self._nufft = _Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
         # spread = (partition, this rank's source indices): the type-1 transform of this rank's
         # sources only, the mode grid summed over the ranks (Allreduce), the rest replicated
-        # (docs/parallel.md: one node, the grid is small next to the far-field work)
+        # (docs/explanation/parallel.md: one node, the grid is small next to the far-field work)
         self._spread = None
         if spread is not None:
             part, mine = spread

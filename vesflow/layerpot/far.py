@@ -24,7 +24,7 @@ Backends
     self part (target t against the sources of vesicle ``trg_id[t]``) is subtracted with the
     direct kernel ``stokeslet_sum_pairs`` / ``stresslet_sum_pairs``: O(N M Q) for N vesicles
     of M targets and Q sources each (0.3-0.6 s per call at N = 256, p = 16, q = 32 on
-    this machine; see docs/far_field.md).  Conventions (docs: SETUP_NOTES "fmm3dpy"): the
+    this machine; see docs/explanation/far_field.md).  Conventions (docs: SETUP_NOTES "fmm3dpy"): the
     FMM stresslet is ``+(3/4pi)(r.mu)(r.nu) r / r^5``, so the orientation passed is
     ``strsvec = -n w``; ``pottarg`` comes back as (1, 3, T).
     Targets that coincide with a source of their own vesicle up to rounding (the p-grid and
@@ -43,11 +43,11 @@ Backends
     The backend :func:`predicted_seconds` says is fastest (fmm only if fmm3dpy imports,
     ewald only if ducc0 or finufft does and the points are given); periodic: always ewald.
     The constants were measured with benchmarks/far_field.py and benchmarks/ewald.py
-    (docs/far_field.md).
+    (docs/explanation/far_field.md).
 
 FMM accuracy: ``eps`` (default ``DEFAULT_EPS = 1e-8``) is fmm3dpy's requested precision;
 the error measured against the direct sum, relative to the largest velocity, is below
-``eps`` (docs/far_field.md).  1e-8 rather than 1e-6: the far field enters every GMRES
+``eps`` (docs/explanation/far_field.md).  1e-8 rather than 1e-6: the far field enters every GMRES
 matrix-vector product and the singular/near quadratures are accurate to 1e-6 .. 1e-10, so an
 FMM error of 1e-6 would dominate them, for a measured cost of only about 1.3x.
 """
@@ -61,19 +61,19 @@ from vesflow.errors import NumericalFailure, SceneError
 
 BACKENDS = ("direct", "fmm", "ewald", "auto")
 DEFAULT_EPS = 1e-8
-# Cost model of "auto", measured with benchmarks/far_field.py on this machine (docs/far_field.md):
+# Cost model of "auto", measured with benchmarks/far_field.py on this machine (docs/explanation/far_field.md):
 # direct sum: seconds per (target, source) pair for ONE OpenMP thread (divided by the threads);
 # FMM (fmm3dpy wheel, serial): seconds per point (sources + targets) at the measured eps,
 # interpolated in log(eps) in between, clamped outside.
 # Re-measured (OMP_NUM_THREADS=1 benchmarks/far_field.py, p = 16, q = 32, N = 8..128, load ~3.5
-# on 2 cores; docs/far_field.md): 3.91 ns CPU per pair (direct, N = 128; was 3.6) and 235 us CPU
+# on 2 cores; docs/explanation/far_field.md): 3.91 ns CPU per pair (direct, N = 128; was 3.6) and 235 us CPU
 # per point (fmm eps 1e-8, N = 64; was 200); measured crossover N ~ 150 vesicles (power laws of
 # the wall and CPU times), the model below switches at N = 139 (it said 129 before).
 # Second wave: the vectorized kernels (pairsum.h, AVX-512 clone) 1.37-1.47 ns CPU per pair for two
 # vesicles at p = 6..16 (benchmarks/cost_model.py).
 DIRECT_SECONDS_PER_PAIR = 1.4e-9
 # 1e-6 re-measured: 119 us per point at N = 64, 165 us at N = 128 (the per-point cost grows like N^0.26;
-# benchmarks/far_field.py --eps 1e-6, load ~9, docs/far_field.md): the larger kept
+# benchmarks/far_field.py --eps 1e-6, load ~9, docs/explanation/far_field.md): the larger kept
 FMM_SECONDS_PER_POINT = {1e-6: 1.65e-4, 1e-8: 2.35e-4, 1e-10: 2.5e-4}
 # targets within SNAP_TOL * (size of the point cloud) of a source of their own vesicle are
 # moved onto it (FMM backend only)

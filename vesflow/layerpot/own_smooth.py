@@ -1,4 +1,4 @@
-"""The own vesicle's smooth Ewald share, removed in the per-step set-up (docs/far_field.md,
+"""The own vesicle's smooth Ewald share, removed in the per-step set-up (docs/explanation/far_field.md,
 "The own vesicle in the set-up (fourth session)").
 
 With ``EwaldSum(own="smooth")`` (vesflow.layerpot.ewald) the far field at a p-grid target x_t

@@ -13,7 +13,7 @@ the Galerkin operator S_hat = P S (3C x 3C per vesicle), applied with one batche
 
 Precision (-ves_self_precision): the operators are assembled in float64 one vesicle at a time
 and stored in `dtype` (float64, or float32 at half the memory); float32 operators are applied in
-float32 (the density rounded to float32, the result returned in float64), docs/parallel.md.
+float32 (the density rounded to float32, the result returned in float64), docs/explanation/parallel.md.
 
 Double layer: the lambda = 0 kernel -(3/4pi)(r.n_y) r r^T / r^5 gives the principal value;
 the limits from outside/inside are pv -/+ density/2.
