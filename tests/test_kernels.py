@@ -40,7 +40,7 @@ def relerr(a, b):
 
 
 def sphere_grid(q, radius=1.0, centre=(0.0, 0.0, 0.0)):
-    """q-grid of docs/conventions.md on a sphere: points, outward normals, area weights."""
+    """q-grid of docs/explanation/conventions.md on a sphere: points, outward normals, area weights."""
     x, w = np.polynomial.legendre.leggauss(q + 1)
     order = np.argsort(-x)
     x, w = x[order], w[order]

@@ -512,7 +512,7 @@ def run_sweep_case(shape, v, config, flow, gravity, lam, p, T):
     print(f"[stability] {name}: preconditioned condition estimate <= {cond:.3g}, GMRES iterations per solve "
           f"<= {max(its):.0f} (mean {np.mean(its):.1f})")
     # v = 0.999: ~1e3, the constant-tension mode's eigenvalue 1 / (1 + c gamma) ~ 1e-3 (the
-    # operator's own near-singularity, docs/dynamics.md); the rest of the spectrum is within ~40
+    # operator's own near-singularity, docs/explanation/dynamics.md); the rest of the spectrum is within ~40
     assert cond < 5e3 and max(its) < 60
     return inv, cond
 
