@@ -1,4 +1,4 @@
-"""Dynamics: checks under "Dynamics" in VALIDATION.md that need no adaptivity."""
+"""Dynamics: checks under "Dynamics" in docs/explanation/validation.md that need no adaptivity."""
 import numpy as np
 import pytest
 

@@ -1,6 +1,6 @@
 """Compiled kernels (vesflow/_kernels) and far-field backends (vesflow/layerpot/far.py).
 
-Kernels of the method reference, section 4 (mu = 1, r = x - y):
+Kernels of the docs/explanation/method.md, section 4 (mu = 1, r = x - y):
   Stokeslet  S f = (1/(8 pi)) (f/r + r (r.f)/r^3)
   stresslet  D g = -(3/(4 pi)) (r.nw)(r.g) r / r^5
 """

@@ -1,4 +1,4 @@
-"""Spherical harmonics: round trips, derivatives, rotations (VALIDATION.md, Surfaces)."""
+"""Spherical harmonics: round trips, derivatives, rotations (docs/explanation/validation.md, Surfaces)."""
 import numpy as np
 import pytest
 

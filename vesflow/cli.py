@@ -1,4 +1,4 @@
-"""`vesflow run | check | render` (INTERFACE.md).  Exit status: 0 done, 2 bad input, 3 numerical failure."""
+"""`vesflow run | check | render` (docs/reference/cli.md).  Exit status: 0 done, 2 bad input, 3 numerical failure."""
 from __future__ import annotations
 
 import os

@@ -1,4 +1,4 @@
-"""Preconditioners as PC python contexts (method reference 6).
+"""Preconditioners as PC python contexts (docs/explanation/method.md, section 6).
 
     -pc_type python -pc_python_type vesflow.precond.BlockJacobi    dense LU of each vesicle's self block
     -pc_type python -pc_python_type vesflow.precond.SphereSpectral the block of a sphere of the same size

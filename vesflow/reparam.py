@@ -1,4 +1,4 @@
-"""Reparameterization by tangential moves (paper 3.5; DESIGN 7).
+"""Reparameterization by tangential moves (paper 3.5; docs/explanation/method.md, section 7).
 
 Minimizes the spectral energy of paper 3.5
 

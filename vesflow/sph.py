@@ -1,4 +1,4 @@
-"""Real spherical harmonics on Gauss-Legendre grids (method reference, section 2; paper 3.1).
+"""Real spherical harmonics on Gauss-Legendre grids (docs/explanation/method.md, section 2; paper 3.1).
 
 Basis (orthonormal on the unit sphere, no Condon-Shortley phase):
     Y_n^0 = lam_n^0(cos t),  Y_n^{m,c} = sqrt2 lam_n^m(cos t) cos(m p),  Y_n^{m,s} = sqrt2 lam_n^m(cos t) sin(m p)

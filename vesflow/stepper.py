@@ -1,4 +1,4 @@
-"""One semi-implicit step and the first-order stepper (method reference 6; paper 3.6).
+"""One semi-implicit step and the first-order stepper (docs/explanation/method.md, section 6; paper 3.6).
 
     alpha u - sum_j [S_ij(dt B_j[u_j] + f_sigma(sigma_j)) - D_ij u_j]   (sign of D: see operator.py)
           = u_inf(X^n) + sum_j S_ij (f_b(X_j^n) + f_g,j + f_r,j),      div u = 0,

@@ -2,7 +2,7 @@
 """Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/explanation/far_field.md, "Ewald").
 
 With ``r = x - y`` (target minus source), ``z = xi r``, ``e = exp(-z^2)`` and the kernels of
-method reference section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
+docs/explanation/method.md, section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
 (``G = I/r + r r^T/r^3``, ``T_ijl = -6 r_i r_j r_l / r^5``), the Hasimoto split
 ``G = G^R + G^F``, ``T = T^R + T^F`` has the real-space parts (Hasimoto 1959; Lindbo and
 Tornberg 2010, eq. 2.5; af Klinteberg and Tornberg 2014 for the stresslet)::

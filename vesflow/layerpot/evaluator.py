@@ -1,4 +1,4 @@
-"""sum_j S_j[f] + D_j[g] at the surface points of all vesicles, or at free targets (method reference 5).
+"""sum_j S_j[f] + D_j[g] at the surface points of all vesicles, or at free targets (docs/explanation/method.md, section 5).
 
 Per step (geometry frozen) `LayerPotentials.__init__` does the setup: the self operators,
 the upsampled far-field sources, the near pairs (cell lists), their projections and

@@ -1,4 +1,4 @@
-"""Spectral Ewald sums of the Stokeslet and the stresslet (method reference section 5, regime 3).
+"""Spectral Ewald sums of the Stokeslet and the stresslet (docs/explanation/method.md, section 5, regime 3).
 
 For sources ``y_s`` (densities ``f_s`` = traction times weight; ``g_s`` with orientations
 ``nw_s`` = normal times weight) and targets ``x_t`` this evaluates, with the section 4

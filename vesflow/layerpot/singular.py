@@ -1,4 +1,4 @@
-"""Self interaction: singular quadrature assembled into per-vesicle operators (method reference 5.1; paper 3.2.1).
+"""Self interaction: singular quadrature assembled into per-vesicle operators (docs/explanation/method.md, section 5.1; paper 3.2.1).
 
 For a target t = (theta0, phi0) of the p-grid the surface and the density are rotated so
 that t sits at the north pole, g = f o R_z(phi0) R_y(theta0), evaluated on the q-grid and
