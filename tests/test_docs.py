@@ -59,7 +59,10 @@ CITED = re.compile(r"(?<![\w/.])(docs/[\w./-]+\.(?:md|png|csv|txt))")   # docs/.
 def link_targets(path):
     """(target as written, resolved path) of every local link and docs/ path cited in a page."""
     text = read(path)
-    for t in LINK.findall(text):
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)              # links are not in code:
+    prose = re.sub(r"^(    |\t).*$", "", prose, flags=re.M)          # fenced, indented
+    prose = re.sub(r"`[^`\n]*`", "", prose)                           # or inline
+    for t in LINK.findall(prose):
         if re.match(r"[a-z]+:", t) or t.startswith("#"):
             continue
         yield t, os.path.normpath(os.path.join(os.path.dirname(path), t.split("#")[0]))
