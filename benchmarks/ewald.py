@@ -1,4 +1,4 @@
-"""Spectral Ewald far field against the direct sum and the FMM (docs/explanation/far_field.md, "Ewald").
+"""Spectral Ewald far field against the direct sum and the FMM (docs/explanation/far_field.md, "Spectral Ewald").
 
 The scene of benchmarks/far_field.py (unit spheres on a jittered cubic lattice of spacing 2.5,
 p-grid targets, q-grid sources with area weights, random densities); for each number of

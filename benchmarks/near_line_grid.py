@@ -1,5 +1,5 @@
 """Can the near correction's line points use a coarser grid than the far field's q grid?
-(docs/explanation/far_field.md, "The near and self parts (fourth session)").
+(docs/explanation/far_field.md, "The near part").
 
 The near-singular value at a target (paper 3.2.2) interpolates the on-surface value and the
 smooth rule at L = 8 line points at distances s h_n, s = 1, 8/7, ..., 2 (h_n = sqrt(A / q)).

@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/explanation/far_field.md, "Ewald").
+"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/explanation/far_field.md, "Spectral Ewald").
 
 With ``r = x - y`` (target minus source), ``z = xi r``, ``e = exp(-z^2)`` and the kernels of
 docs/explanation/method.md, section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``

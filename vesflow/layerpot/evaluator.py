@@ -56,7 +56,7 @@ class Settings:
         # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
         # operators built in the set-up, vesflow.layerpot.own_smooth), "subtract" (in the GMRES
         # iteration) or "auto": smooth when the cost model says the set-up pays for itself over
-        # `applies_per_setup` applications; docs/explanation/far_field.md, "The own vesicle in the set-up"
+        # `applies_per_setup` applications; docs/explanation/far_field.md, "Spectral Ewald" (the own vesicle)
         self.ewald_own = ewald_own
         self.applies_per_setup = float(applies_per_setup)
         self.near_blend = float(near_blend)   # width of the near/smooth blend beyond h_n, in units of h_n

@@ -74,7 +74,7 @@ PREFACTOR_DOUBLE = 1.5
 PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol: with tol itself the error stays below 0.25 tol at
 # 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
-# benchmarks/nufft_eps_margin.py, docs/explanation/far_field.md "Free space, fourth session"; 0.5 before)
+# benchmarks/nufft_eps_margin.py, docs/explanation/far_field.md, "Accuracy of the Ewald sum"; 0.5 before)
 NUFFT_EPS_FACTOR = 1.0
 # ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
 DUCC0_SIGMA = (1.3, 1.6)
@@ -86,12 +86,11 @@ DUCC0_SIGMA_MIN_EPS = 5e-11
 # vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
 # width cubed; FFT per fine-grid point (3.4 per mode) per transform per log2(grid), times
 # (grid / 1e7)^fft_growth (large grids cost more per point: caches); k-space multiplication per
-# mode per transform.  Fitted (fourth session, docs/explanation/far_field.md "Free space,
-# fourth session") on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
+# mode per transform.  Fitted (benchmarks/ewald_split.py, docs/explanation/far_field.md) on free-space N = 32 / 64 / 128 and periodic N = 64 / 128 at 4 cutoffs each
 # and periodic N = 125 (dense) and 512 at 3 and 1 cutoffs, p = 16, tol 1e-6: the NUFFT parts
 # within 0.6-1.7x of each measurement (rms 21 %), the real space within 20 %, the totals at the
-# choice within 15 % (the third session's constants pair 5.5e-9, nufft_point 1.07e-9,
-# fft_point 1.6e-9, mode 1e-8 and no growth over-predicted the free-space sums 2x)
+# choice within 15 % (constants fitted on the periodic N = 512 sum alone, pair 5.5e-9, nufft_point
+# 1.07e-9, fft_point 1.6e-9, mode 1e-8 and no growth, over-predict the free-space sums 2x)
 COST = {"pair": 3.7e-9, "target": 2.3e-6, "own_pair": 1.5e-9, "nufft_point": 8.8e-10, "fft_point": 6.3e-10,
         "fft_growth": 0.3, "mode": 4.0e-9}
 # memory of the Fourier grids of one pass (complex; one grid per pair of real source components
@@ -236,7 +235,7 @@ def _free_period(box, w):
     """Free-space period per axis, ``P_a = 2 B_a + w``: the differences of the points lie in
     ``(-B_a, B_a)`` and the windowed kernel vanishes (to tol) beyond ``B_a + w``, so the images
     ``d + n P_a`` (n != 0) of a difference lie beyond ``P_a - B_a = B_a + w``: outside the
-    kernel's support.  (``2 (B_a + w)``, the kernel's support itself, before the fourth session.)"""
+    kernel's support.  (``2 (B_a + w)``, the kernel's support itself, would be w per axis longer.)"""
     return 2.0 * np.asarray(box, dtype=np.float64) + w
 
 
@@ -406,7 +405,7 @@ class _Nufft:
             pts = self.src if kind == 1 else self.trg
             # oversampling 1.3 .. 1.6 instead of ducc0's own choice in 1.19 .. 2.51: type 1 at
             # N = 512 (1.08e6 sources, 146^3 modes) 1.64 -> 1.36-1.39 s, N = 64 0.21 -> 0.12 s
-            # (docs/explanation/far_field.md, "Speed: third session")
+            # (docs/explanation/far_field.md, "Spectral Ewald", NUFFT library)
             # (ducc0 has kernels for them down to eps 5e-11; below, its own range)
             sigma = DUCC0_SIGMA if self.eps >= DUCC0_SIGMA_MIN_EPS else (1.19, 2.51)
             self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),
@@ -461,7 +460,7 @@ class EwaldSum:
     ``params`` an :class:`EwaldParams` (default: :func:`choose_params` for ``tol``);
     ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`).
 
-    ``own`` (docs/explanation/far_field.md, "The own vesicle in the set-up"): "subtract" gives the sum of
+    ``own`` (docs/explanation/far_field.md, "Spectral Ewald" (the own vesicle)): "subtract" gives the sum of
     the module docstring (the own vesicle's pairs inside rc in the real-space sum, its full
     kernel subtracted); "smooth" leaves every target's own vesicle out of the real-space sum and
     subtracts nothing, so that the result ADDS ``sum_{s own} G^F(x_t - y_s) f_s`` (+ T^F) to the
