@@ -2,7 +2,7 @@
 #   make test      set-up (Debian packages, PETSc env, kernels) then the default tests
 #   make run       set-up then the default scene (or SCENE=...) and its movie
 #   make test-all  the default tests plus the slow ones and the cheap accuracy-cost study
-#   make study     the full accuracy-cost study (docs/study/, about an hour on 2 cores)
+#   make study     the accuracy-cost study (docs/study/; cached cases are reused, a fresh run takes hours)
 SHELL := /bin/bash
 PY      := .venv/bin/python
 VESFLOW := .venv/bin/vesflow
@@ -40,8 +40,13 @@ run: setup
 	$(VESFLOW) run $(SCENE) -o $(OUT)
 	$(VESFLOW) render $(OUT) -o $(OUT:.h5=.mp4) --frames $(OUT:.h5=_frames)
 
+# the current study (docs/explanation/accuracy_cost.md): an sdc p = 16 reference, euler and sdc cases
+STUDY_CASES := --ref 16,1e-4,0,sdc --case 16,1e-2 --case 16,1e-2,0,sdc --case 10,1e-2,0,sdc \
+  --case 16,2.5e-3,0,sdc --case 16,2e-2,0,sdc --case 12,1e-2,0,sdc --case 10,4e-2,0,sdc \
+  --case 12,2.5e-3,0,sdc --case 16,2e-2 --case 16,4e-2 --case 12,1e-2 --case 10,2e-2,0.04 --case 8,4e-2 \
+  --case 8,4e-2,0,sdc --case 8,1e-2,0,sdc
 study: setup
-	$(VESFLOW) study accuracy-cost runs/accuracy_cost.toml --out docs/study
+	OMP_NUM_THREADS=1 $(VESFLOW) study accuracy-cost runs/accuracy_cost.toml --out docs/study $(STUDY_CASES)
 
 bench: setup
 	$(PY) benchmarks/run_all.py

@@ -1,4 +1,4 @@
-"""Spectral Ewald far field against the direct sum and the FMM (docs/far_field.md, "Ewald").
+"""Spectral Ewald far field against the direct sum and the FMM (docs/explanation/far_field.md, "Spectral Ewald").
 
 The scene of benchmarks/far_field.py (unit spheres on a jittered cubic lattice of spacing 2.5,
 p-grid targets, q-grid sources with area weights, random densities); for each number of
@@ -9,7 +9,7 @@ against the direct sum where that ran, and the direct sum and fmm where they fit
 --max-seconds (else the prediction of far.py's cost model, marked "model").  Times are wall /
 process CPU.  A fitted growth exponent and the backend 'auto' picks are printed at the end.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald.py                  # docs/far_field.md
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald.py                  # docs/explanation/far_field.md
     python benchmarks/ewald.py --sizes 8 64 --tol 1e-6 --layer double --nufft finufft
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald.py --periodic   # the lattice in its periodic cube
 

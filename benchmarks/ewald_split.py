@@ -1,5 +1,5 @@
 """The Ewald far field (periodic, or free space with --free) split into its parts, and the cost model re-fitted from them
-(docs/far_field.md, "Where the periodic far field's time goes").
+(docs/explanation/far_field.md, "Periodic: where the time of a large suspension goes").
 
 The scene of benchmarks/far_field.py (unit spheres on a jittered lattice of spacing 2.5 in
 their periodic cube), single layer, parameters from --tol; per part the best of --repeat

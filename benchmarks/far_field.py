@@ -1,8 +1,8 @@
-"""Far-field backends: time per evaluation versus the number of vesicles (docs/far_field.md).
+"""Far-field backends: time per evaluation versus the number of vesicles (docs/explanation/far_field.md).
 
 Unit spheres on a jittered cubic lattice (centre spacing 2.5, no overlaps), targets on the
 p-grid (M = 2p(p+1) per vesicle), sources on the q-grid (2q(q+1) per vesicle) with the
-Gauss-Legendre area weights of docs/conventions.md, random densities.  For each number of
+Gauss-Legendre area weights of docs/explanation/conventions.md, random densities.  For each number of
 vesicles N and each backend of vesflow.layerpot.far, the time of one evaluation (best of
 ``--repeat``; set-up of the FarField object timed separately), the FMM error against the
 direct sum where both ran, the growth exponent fitted to log(time) vs log(N) (least squares),
@@ -14,7 +14,7 @@ A case is skipped (and reported) when its predicted time, extrapolated from the 
 size with N^2 (direct) or N^1.2 (FMM), exceeds ``--max-seconds`` or would take the run past
 ``--budget`` seconds in total.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/far_field.py       # the run of docs/far_field.md
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/far_field.py       # the run of docs/explanation/far_field.md
     OMP_NUM_THREADS=2 .venv/bin/python benchmarks/far_field.py       # direct on 2 threads (fmm stays serial)
     python benchmarks/far_field.py --sizes 8 16 --layer double --eps 1e-6
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/far_field.py --eps 1e-6 --sizes 8 16 32 64 128 256 512 1024
@@ -36,7 +36,7 @@ from vesflow.layerpot import far  # noqa: E402
 
 
 def sphere_grid(q):
-    """Unit-sphere q-grid (docs/conventions.md): points (M, 3), area weights (M,)."""
+    """Unit-sphere q-grid (docs/explanation/conventions.md): points (M, 3), area weights (M,)."""
     x, w = np.polynomial.legendre.leggauss(q + 1)
     order = np.argsort(-x)
     x, w = x[order], w[order]

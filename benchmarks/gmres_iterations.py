@@ -1,4 +1,4 @@
-"""GMRES iterations and time per iteration of one implicit solve, per preconditioner (docs/dynamics.md).
+"""GMRES iterations and time per iteration of one implicit solve, per preconditioner (docs/explanation/dynamics.md).
 
 A suspension of N identical oblate vesicles (reduced volume --v, effective radius 1, symmetry
 axis along z, the shear gradient) on a regular lattice whose surfaces are --gap apart along

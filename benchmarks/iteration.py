@@ -1,4 +1,4 @@
-"""One GMRES iteration of a periodic suspension, split into its parts (docs/far_field.md,
+"""One GMRES iteration of a periodic suspension, split into its parts (docs/explanation/far_field.md,
 "A whole GMRES iteration").
 
 N vesicles (unit-radius spheres, or biconcave cells of reduced volume 0.65 with --shape
@@ -14,7 +14,7 @@ per iteration, best of the repeats.  Memory: the self operators alone are N (3C)
 (5.7 MB per vesicle at p = 16), the own smooth operators (--own smooth, the default) as many
 again.  The biconcave cells (2.38 wide) in random orientations touch or
 intersect at spacings 2.2 and 2.5 (minimum distance 0.001 / 0.005 between their q = 48 points):
-such a scene times the iteration but its velocities are meaningless (docs/far_field.md, "The
+such a scene times the iteration but its velocities are meaningless (docs/explanation/far_field.md, "The
 far/near grid degree q").
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/iteration.py --n 64

@@ -22,7 +22,7 @@ Both paths are checked to give the same transform (printed: max relative differe
     OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python benchmarks/mpi_fft.py
     OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python benchmarks/mpi_fft.py --modes 64 146 196
 
-Results: docs/parallel.md "Far field across ranks".
+Results: docs/explanation/parallel.md, "Design: replicated state, distributed work".
 """
 import argparse
 import os

@@ -1,7 +1,7 @@
 """Memory per rank of one step, modelled (issue 19): the paper's Taylor-Green suspension,
 1408 vesicles at p = 16, on 1, 2, 16 and 64 ranks, and what makes it fit in 24 GB.
 
-    .venv/bin/python benchmarks/mpi_memory.py                      # the table of docs/parallel.md
+    .venv/bin/python benchmarks/mpi_memory.py                      # the table of docs/explanation/parallel.md
     .venv/bin/python benchmarks/mpi_memory.py --ranks 1 2 4 16 64
 
 Per rank = base + (vesicles it owns) x owned + (surfaces it holds) x surface
@@ -175,7 +175,7 @@ def main(argv=None):
         print(f"{R:6d} {n_own:6d} {held[R]:6d} {per / GB:12.2f} {gathered / GB:22.2f} {per * R / GB:26.1f}")
     # the options that bring one node's total under 24 GB (16 ranks, say)
     print("options (per owned vesicle; the dense arrays each removes, counted from their shapes: the measured\n"
-          "peak falls less, SphereSpectral at 8 vesicles by 11 MB per vesicle, not 26; docs/parallel.md):")
+          "peak falls less, SphereSpectral at 8 vesicles by 11 MB per vesicle, not 26; docs/explanation/parallel.md):")
     opts = {
         "as is": owned + extra_lu,
         "SphereSpectral PC (no per-vesicle blocks)": owned + extra_lu - parts - (args.lu_kept) * dense_bytes(p)[2],

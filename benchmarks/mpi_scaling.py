@@ -12,7 +12,7 @@ and per GMRES iteration (the time inside KSPSolve over its iterations), the spli
 and the peak resident memory (ru_maxrss) of each rank; then the load average (the machine is
 shared: with one thread per rank the CPU time is what an idle core's wall time would be).
 --trace adds tracemalloc's peak per rank (the arrays alone) and the surfaces the last layer
-potentials held (own + halo, vesflow.parallel.Halo): the figures of docs/parallel.md "Memory".
+potentials held (own + halo, vesflow.parallel.Halo): the figures of docs/explanation/parallel.md "Memory".
 """
 import argparse
 import os

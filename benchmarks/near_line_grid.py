@@ -1,5 +1,5 @@
 """Can the near correction's line points use a coarser grid than the far field's q grid?
-(docs/far_field.md, "The near and self parts (fourth session)").
+(docs/explanation/far_field.md, "The near part").
 
 The near-singular value at a target (paper 3.2.2) interpolates the on-surface value and the
 smooth rule at L = 8 line points at distances s h_n, s = 1, 8/7, ..., 2 (h_n = sqrt(A / q)).
@@ -12,7 +12,7 @@ target itself always keeps the q grid (it cancels the far field's value).
 
 - ``--case identity``: the double layer of the density 1 (lambda = 0 kernel) of one vesicle
   (sphere, ellipsoid 1:1:3, biconcave) at 30 targets at 1e-1, 1e-3, 1e-5 R outside: the exact
-  value is 0 (VALIDATION.md; tests/test_layerpot.py::test_double_layer_identity_near_targets).
+  value is 0 (docs/explanation/validation.md; tests/test_layerpot.py::test_double_layer_identity_near_targets).
 - ``--case lattice``: 8 vesicles (benchmarks/iteration.py's lattice, free space, direct sum)
   or a biconcave pair at a gap, random densities (smooth: exp(-0.3 k) in the flat index k;
   rough: exp(-0.5 n) in the degree n), single layer (and double, lambda = 0.3, with

@@ -1,6 +1,6 @@
 """The Ewald sum's error against the NUFFT accuracy it requests (``ewald.NUFFT_EPS_FACTOR``:
 NUFFT eps = factor * tol), free space and periodic, single and double layer
-(docs/far_field.md, "Free space, fourth session").
+(docs/explanation/far_field.md, "Accuracy of the Ewald sum").
 
 Scenes: ``spheres``, the unit spheres of benchmarks/far_field.py (--n of them, p = 16 targets,
 q = 32 sources, area-weighted random densities); ``clusters``, the random point clusters of

@@ -1,4 +1,4 @@
-"""What the far/near grid degree q costs in accuracy (docs/far_field.md, "The far/near grid
+"""What the far/near grid degree q costs in accuracy (docs/explanation/far_field.md, "The far/near grid
 degree q").
 
 The periodic scene of benchmarks/iteration.py (same lattice, shapes, orientations and random
@@ -8,7 +8,7 @@ at q = --ref, at each Ewald tol of --tols.  The self part (q_self = 2p) is the s
 Printed per (tol, q): the max-norm difference of the velocities on the p-grid relative to the
 largest velocity (`err/|u|`; also the 99th percentile of the pointwise differences), and relative to the largest interaction velocity (far + near,
 i.e. apply minus the self part: `err/|u_int|`).  The tol columns include the Ewald error of
-both applies (~0.03-0.25 tol, docs/far_field.md), so differences below ~tol are not q's.
+both applies (~0.03-0.25 tol, docs/explanation/far_field.md), so differences below ~tol are not q's.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/q_accuracy.py --n 64
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/q_accuracy.py --n 64 --spacing 2.3 --ref 96 --tols 1e-8

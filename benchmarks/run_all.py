@@ -4,7 +4,7 @@ Each script runs in its own process (the Python running this file, the environme
 OMP_NUM_THREADS is passed through, the Makefile exports 2), its output is printed as it comes,
 and a summary with the status and wall time of each follows.  The quick settings take a few
 minutes on 2 cores; --full runs every script with its own defaults instead (the runs of
-docs/benchmarks.md, docs/far_field.md, docs/transforms.md, docs/dynamics.md: about half an hour
+docs/explanation/performance.md, docs/explanation/far_field.md, docs/explanation/transforms.md, docs/explanation/dynamics.md: about half an hour
 or more).  sht_ducc0.py is skipped (and said so) when ducc0 does not import.
 
     .venv/bin/python benchmarks/run_all.py                     # what `make bench` runs

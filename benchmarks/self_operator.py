@@ -1,4 +1,4 @@
-"""Singular self operators: set-up and apply time per vesicle, and the apply's memory bandwidth (docs/benchmarks.md).
+"""Singular self operators: set-up and apply time per vesicle, and the apply's memory bandwidth (docs/explanation/performance.md).
 
 For each degree p (q = 2p, the default singular order) one oblate vesicle (reduced volume 0.85)
 is assembled by vesflow.layerpot.singular.SelfOperators, single layer alone ("S") and single
@@ -12,7 +12,7 @@ densities, i.e. N matrix-vector products), for N vesicles whose operators are co
 assembled one in separate memory (the values do not change the time).  Two batch sizes per p:
 the one given by --nves (default 64, 16, 4 for p = 8, 16, 32) and, with --stream-mb, the
 smallest N whose operators fill that many MB (default 256 MB, 8x the 32 MB L3 of the machine of
-docs/benchmarks.md, so every apply streams from DRAM).
+docs/explanation/performance.md, so every apply streams from DRAM).
 
 Bandwidth: bytes of operator matrices read per apply (N (3C)^2 8 per layer; the densities and
 results add < 1%) / apply time, as a fraction of the copy bandwidth measured in the same process,
@@ -21,7 +21,7 @@ of 5; the write-allocate read of the destination is NOT counted, as is usual, so
 stream such as GEMV can exceed 100%).  For reference also the read bandwidth of one large GEMV
 (a --copy-mb MB matrix times a vector), the best a bandwidth-bound apply can do.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/self_operator.py             # docs/benchmarks.md
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/self_operator.py             # docs/explanation/performance.md
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/self_operator.py --degrees 8 16 --setup-ves 2 --stream-mb 0
 """
 import argparse

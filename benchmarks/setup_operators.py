@@ -1,7 +1,7 @@
 """Per-step set-up of the per-vesicle operators: ms of process CPU (and wall) per vesicle for
 the self operators (vesflow.layerpot.singular.SelfOperators) and the Ewald far field's own
-smooth operators (vesflow.layerpot.own_smooth.OwnSmoothOperators), docs/far_field.md "Set-up
-of the self and own smooth operators (fourth session)".
+smooth operators (vesflow.layerpot.own_smooth.OwnSmoothOperators), docs/explanation/far_field.md
+"Periodic: where the time of a large suspension goes".
 
 N biconcave vesicles (reduced volume 0.65, random orientations), degree p, singular and far
 grid q = 2p, Ewald splitting --xi; single layer alone ("S") and both layers ("S+D"); each

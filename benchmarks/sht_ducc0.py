@@ -8,7 +8,7 @@ is analysed and resynthesized by vesflow; the grids must agree to 1e-12 (same po
 function space), which the script asserts.  Also the set-up time of vesflow's transform
 (first sph.transform(p, q) call) against a cached call.
 
-    OMP_NUM_THREADS=1 python benchmarks/sht_ducc0.py            # the run in docs/transforms.md
+    OMP_NUM_THREADS=1 python benchmarks/sht_ducc0.py            # the run in docs/explanation/transforms.md
     python benchmarks/sht_ducc0.py --p 8 16 --batch 1 100
 """
 import argparse

@@ -1,5 +1,5 @@
 #!/bin/bash
-# One accuracy-cost case of two vesflow trees in the same minutes (docs/accuracy_cost.md,
+# One accuracy-cost case of two vesflow trees in the same minutes (docs/explanation/accuracy_cost.md,
 # "Side by side"): the OLD tree runs the case once, the NEW tree runs it in a loop until the old
 # one is done, so that both see the same machine load (CPU time depends on it on a shared machine).
 # Prints one line per run: the tree, solves, GMRES iterations per solve, process CPU seconds and

@@ -1,4 +1,4 @@
-"""Exploration runs of docs/robustness.md, section 3: two oblates (v = 0.9, kappa_b = 0.05)
+"""Exploration runs of docs/explanation/robustness.md, section 3: two oblates (v = 0.9, kappa_b = 0.05)
 sheared past each other, centres (-dx, 0, dz), (dx, 0, -dz); prints the outcome, the collision
 rejections and the min gap / contacts at every frame.
 

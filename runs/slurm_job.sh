@@ -13,7 +13,7 @@
 # default: every frame).  Extra options: OPTS (options file), EXTRA (more options).
 #
 # MPI: the vesicles are divided among the --ntasks ranks (contiguous blocks in Morton order,
-# docs/parallel.md); each rank may also use --cpus-per-task OpenMP threads in the kernels.
+# docs/explanation/parallel.md); each rank may also use --cpus-per-task OpenMP threads in the kernels.
 # Under SLURM the ranks are started by srun; elsewhere the same line is
 #     mpiexec -n 16 vesflow run SCENE -o OUT -options_file runs/production.opts -log_view
 # A job may continue a run written with another number of ranks (the file holds the whole

@@ -1,4 +1,4 @@
-"""Tank-treading of one vesicle in shear: inclination angle and membrane rotation (docs/dynamics.md).
+"""Tank-treading of one vesicle in shear: inclination angle and membrane rotation (docs/explanation/dynamics.md).
 
 Runs the scene runs/tank_treading.toml (prolate, v = 0.9, lambda = 1, kappa_b = 0.1, shear
 u = (z, 0, 0) of rate 1, p = 12) with the ordinary adaptive driver (vesflow.simulation.Run:

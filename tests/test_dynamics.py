@@ -1,4 +1,4 @@
-"""Dynamics: checks under "Dynamics" in VALIDATION.md that need no adaptivity."""
+"""Dynamics: checks under "Dynamics" in docs/explanation/validation.md that need no adaptivity."""
 import numpy as np
 import pytest
 
@@ -112,7 +112,7 @@ def test_failed_solve_raises_convergence_error():
 def test_sphere_in_linear_strain_first_step_velocity(lam):
     """Issue 15: an inextensible spherical membrane (radius a) in the strain u = rate (-x, y/2, z/2)
     has the normal velocity u_n = 60 / (23 lambda + 32) rate a (n.E.n), E = diag(-1, 1/2, 1/2)
-    (derivation in docs/dynamics.md; 12/11 at lambda = 1); the semi-implicit step's bending
+    (derivation in docs/explanation/dynamics.md; 12/11 at lambda = 1); the semi-implicit step's bending
     term dt B[u] divides it by 1 + 72 kappa_b dt / ((23 lambda + 32) mu a^3).  That is the
     unlocked response (Stepper.lock_spheres = False); locked (the default), it is held at 0.  Measured: agreement
     to 4e-15 (lambda = 1) and 7e-15 (5), p = 8."""
@@ -203,7 +203,7 @@ def _sedimenting_pair(distance, p, T):
 @pytest.mark.parametrize("distance", [3.0, 2.5])
 def test_sphere_pair_sediments_at_stimson_jeffery_velocity(distance):
     """p = 8, T = 0.5.  Measured U / U_SJ - 1 (both spheres): 1.5e-4 (distance 3), 2.2e-4 (2.5),
-    5 steps; the remainder is the lock's 1 / (1 + K m) (docs/dynamics.md)."""
+    5 steps; the remainder is the lock's 1 / (1 + K m) (docs/explanation/dynamics.md)."""
     _sedimenting_pair(distance, 8, 0.5)
 
 

@@ -1,6 +1,6 @@
 """Compiled kernels (vesflow/_kernels) and far-field backends (vesflow/layerpot/far.py).
 
-Kernels of the method reference, section 4 (mu = 1, r = x - y):
+Kernels of the docs/explanation/method.md, section 4 (mu = 1, r = x - y):
   Stokeslet  S f = (1/(8 pi)) (f/r + r (r.f)/r^3)
   stresslet  D g = -(3/(4 pi)) (r.nw)(r.g) r / r^5
 """
@@ -40,7 +40,7 @@ def relerr(a, b):
 
 
 def sphere_grid(q, radius=1.0, centre=(0.0, 0.0, 0.0)):
-    """q-grid of docs/conventions.md on a sphere: points, outward normals, area weights."""
+    """q-grid of docs/explanation/conventions.md on a sphere: points, outward normals, area weights."""
     x, w = np.polynomial.legendre.leggauss(q + 1)
     order = np.argsort(-x)
     x, w = x[order], w[order]

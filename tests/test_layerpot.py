@@ -1,4 +1,4 @@
-"""Layer potentials: every check under "Layer potentials" in VALIDATION.md."""
+"""Layer potentials: every check under "Layer potentials" in docs/explanation/validation.md."""
 import numpy as np
 import pytest
 
@@ -94,8 +94,8 @@ def test_double_layer_identity_near_targets(shape, tol_out, tol_in, dist):
 
 def test_greens_identity_with_a_point_force():
     """u = G(x - x0) F from a point force outside; with t its traction (outward normal) and the
-    lambda = 0 kernels, S[t] + D[u] = u inside and 0 outside (VALIDATION: "up to the sign
-    convention": with D[1] = +1 inside, the representation formula carries a plus sign)."""
+    lambda = 0 kernels, S[t] + D[u] = u inside and 0 outside (docs/explanation/validation.md;
+    with D[1] = +1 inside, the representation formula carries a plus sign)."""
     p, q = 16, 32
     S = surface("ellipsoid", p)
     x0, F = np.array([0.2, 3.5, -0.4]), np.array([0.3, 1.0, -0.7])

@@ -1,7 +1,7 @@
 """The fast assembly of the per-vesicle operators (SelfOperators, OwnSmoothOperators;
-docs/far_field.md "Set-up of the self and own smooth operators (fourth session)") against the
+docs/explanation/far_field.md, "Periodic: where the time of a large suspension goes") against the
 plain per-latitude assembly it replaced: one latitude of targets at a time, every rotation and
-transform as in the method reference (5.1), the projection by the dense p-grid analysis
+transform as in docs/explanation/method.md, section 5.1, the projection by the dense p-grid analysis
 matrix.  Equal to rounding (1e-13 relative), both layers, p = 8, q = 16 and p = 6, q = 15."""
 import numpy as np
 import pytest

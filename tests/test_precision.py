@@ -1,4 +1,4 @@
-"""Memory options -ves_self_precision / -ves_pc_precision single (docs/parallel.md, "Memory")."""
+"""Memory options -ves_self_precision / -ves_pc_precision single (docs/explanation/parallel.md, "Memory")."""
 import numpy as np
 import pytest
 

@@ -1,4 +1,4 @@
-"""Preconditioners (method reference 6): both PC python contexts solve the step system to its
+"""Preconditioners (docs/explanation/method.md, section 6): both PC python contexts solve the step system to its
 true residual, and they cut GMRES iterations (block-Jacobi most, as in the paper)."""
 import numpy as np
 import pytest

@@ -2,7 +2,7 @@
 collisions with and without repulsion, adaptive time stepping.
 
 Every test prints its figures ("[robustness] ..." lines: `pytest -rP` or `-s` shows them);
-docs/robustness.md has the measured tables and the commands.  Fast cases run in `make test`,
+docs/explanation/robustness.md has the measured tables and the commands.  Fast cases run in `make test`,
 the long ones (`slow`) in `make test-all`.
 """
 from __future__ import annotations
@@ -178,7 +178,7 @@ def test_reparameterization_changes_shape_at_discretization_level(p):
     (one projection), 2.1e-4 / 4.4e-6 / 2.4e-6 (iterated: below trunc at p = 8 and 12).  The run
     keeps one projection: iterated, it undoes part of every descent, the descent never reaches
     its stopping tolerance and moves the grid by ~7e-3 at every step whatever dt, and the
-    adaptive error stops converging (docs/robustness.md section 2).  What a run must meet is
+    adaptive error stops converging (docs/explanation/robustness.md section 2).  What a run must meet is
     test_reparameterization_changes_run_at_discretization_error."""
     q = 4 * p
     exact, cb = distorted_prolate(p, 0.1)
@@ -278,7 +278,7 @@ def test_collision_detector_rejects_steps_and_run_ends_without_intersection(dz):
     rejects those steps, dt is halved and the run ends at T = 6 with no grid point on or behind
     the other surface.  Measured (dz = 0.15 / 0.22): 2 / 1 collision rejections at dt = 1.13,
     min frame gap 4.0e-3 / 5.3e-3.  The window is wide: dz = 0.12 ... 0.25 all end at T = 6
-    with 1-3 collision rejections (docs/robustness.md, section 3).
+    with 1-3 collision rejections (docs/explanation/robustness.md, section 3).
     Frames only at 0 and 6: since steps land on the output times (issue 15) a frame every 0.1
     caps the steps at 0.1 and the overshooting steps this test is about never happen.
     Measured with the landing steps: the same rejections as before them (dz = 0.15: t = 2.70 and
@@ -316,7 +316,7 @@ def test_close_pair_without_repulsion_ends_without_contact():
     post-step (and after the error test), this run had 26 collision rejections, 12 recovered,
     then contact at t = 5.45 and exit 3.  Measured now: it ends at T = 5.8 with min gap 0.0126,
     no contact, 4 error-estimate rejections.  (With the default options the same pair gets 13
-    collision rejections, recovered, then contact at t = 5.0: docs/robustness.md.)
+    collision rejections, recovered, then contact at t = 5.0: docs/explanation/robustness.md.)
     Frames every 1: with the steps landing on output times every 0.1 or 0.5 (issue 15) the step
     sequence changes and this pair, at the resolution limit of p = 6, comes into contact near
     t = 5.1-5.4 (exit 3, the last good state saved); every 1 it ends at T = 5.8 without contact,

@@ -108,7 +108,7 @@ def test_sdc_two_sweeps_second_order_relaxing_prolate(tight_rtol, quadrature):
 @pytest.mark.slow
 @pytest.mark.parametrize("case", ["prolate", "pair"])
 def test_sdc_orders_two_and_three_sweeps(tight_rtol, case):
-    """K sweeps: order K + 1 (docs/dynamics.md; measured at dt = 0.05 -> 0.025: prolate 2.60 and
+    """K sweeps: order K + 1 (docs/explanation/dynamics.md; measured at dt = 0.05 -> 0.025: prolate 2.60 and
     3.46, pair 2.94 and 3.87).  The pair without near zone (near factor 0.01): the near-singular
     rule's zone, entered and left by grid points at times that depend on dt, makes the velocity
     field discontinuous at its quadrature error (~1e-6 at p = 6), a floor of the time error."""

@@ -1,4 +1,4 @@
-"""Spherical harmonics: round trips, derivatives, rotations (VALIDATION.md, Surfaces)."""
+"""Spherical harmonics: round trips, derivatives, rotations (docs/explanation/validation.md, Surfaces)."""
 import numpy as np
 import pytest
 
@@ -104,8 +104,7 @@ def test_resample_and_filter(rng):
 
 @pytest.mark.parametrize("p, q", [(6, 6), (8, 11)])
 def test_analysis_rows_is_the_analysis_along_the_first_axis(p, q, rng):
-    """Transform.analysis_rows (the operators' projection, docs/far_field.md "Set-up of the self
-    and own smooth operators") equals analysis of the transposed values, reduced and full."""
+    """Transform.analysis_rows (the operators' projection, docs/explanation/performance.md "Time per step") equals analysis of the transposed values, reduced and full."""
     T = sph.transform(p, q)
     v = rng.standard_normal((T.npts, 7))
     for full in (False, True):

@@ -522,7 +522,7 @@ def run_sweep_case(shape, v, config, flow, gravity, lam, p, T, options=None):
     print(f"[stability] {name}: preconditioned condition estimate <= {cond:.3g}, GMRES iterations per solve "
           f"<= {max(its):.0f} (mean {np.mean(its):.1f})")
     # v = 0.999: ~1e3, the constant-tension mode's eigenvalue 1 / (1 + c gamma) ~ 1e-3 (the
-    # operator's own near-singularity, docs/dynamics.md); the rest of the spectrum is within ~40
+    # operator's own near-singularity, docs/explanation/dynamics.md); the rest of the spectrum is within ~40
     assert cond < 5e3 and max(its) < 60
     return inv, cond
 
@@ -556,7 +556,7 @@ def test_sphere_sweep_fast(case):
 @pytest.mark.slow
 @pytest.mark.parametrize("case", _sweep_cases(), ids=lambda c: "-".join(map(str, c)))
 def test_sphere_sweep(case):
-    """Pinned to -ts_type euler: the figures of docs/robustness.md section 5 are euler's (the 144
+    """Pinned to -ts_type euler: the figures of docs/explanation/robustness.md section 5 are euler's (the 144
     cases take about an hour with it)."""
     run_sweep_case(*case, p=8, T=0.5, options=EULER)
 

@@ -3,7 +3,7 @@
 Same scenes and the same invariants (no intersection, area/volume drift, mesh quality, GMRES
 converged on every accepted step, no vesicle lost); the time integrator is SDC (3 Gauss-Lobatto
 nodes, 2 sweeps, its own error estimate).  Fast cases run in `make test`, the long ones (`slow`)
-in `make test-all`; docs/dynamics.md lists which were run and what they gave.
+in `make test-all`; docs/explanation/dynamics.md lists which were run and what they gave.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Surfaces, shapes and forces: every check under "Surfaces" in VALIDATION.md."""
+"""Surfaces, shapes and forces: every check under "Surfaces" in docs/explanation/validation.md."""
 import numpy as np
 import pytest
 from scipy.special import ellipeinc, ellipkinc

@@ -1,4 +1,4 @@
-"""Diagnostics of runs/tank_treading.py (docs/dynamics.md): exact on known shapes and flows; one slow short run."""
+"""Diagnostics of runs/tank_treading.py (docs/explanation/dynamics.md): exact on known shapes and flows; one slow short run."""
 import importlib.util
 import os
 

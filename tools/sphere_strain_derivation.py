@@ -1,4 +1,4 @@
-"""Derivation (sympy) of the l = 2 velocity of an inextensible spherical membrane, docs/dynamics.md.
+"""Derivation (sympy) of the l = 2 velocity of an inextensible spherical membrane, docs/explanation/dynamics.md.
 
 Sphere of radius 1, outer viscosity 1, inner lambda; Lamb's solution inside (n = 2) and outside
 (n = -3, plus the far field E.x); the membrane velocity A Y n + (A/3) grad_s Y, Y = n.E.n, is

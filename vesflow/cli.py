@@ -23,7 +23,7 @@ USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc
        vesflow export OUT.h5 [--vtk DIR]   OUT.xmf beside it (ParaView, VisIt); --vtk: .vtp files and a .pvd
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
        vesflow run -help          every vesflow option with its default
-       mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/parallel.md)"""
+       mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/explanation/parallel.md)"""
 
 
 _QUIET = False          # ranks other than 0 print no error messages

@@ -1,4 +1,4 @@
-"""Area and volume correction after a time step (paper 3.4, eq. 3.20; DESIGN 7).
+"""Area and volume correction after a time step (paper 3.4, eq. 3.20; docs/explanation/method.md, section 7).
 
 Each vesicle is moved along psi n with psi = 2 alpha H - beta.  With the sign convention of
 `vesflow.surface` (outward n, H = -1/R on a sphere) the first variations of area and volume

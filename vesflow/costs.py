@@ -45,7 +45,7 @@ from .surface import Surface
 
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
-# doubling steps of 3 solves), 6-10 in docs/accuracy_cost.md; the paper's 1408-cell case needed
+# doubling steps of 3 solves), 6-10 in docs/explanation/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
 SOLVES_PER_STEP = {"doubling": 3}                 # step attempts per step: one, or one and two halves

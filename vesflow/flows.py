@@ -1,4 +1,4 @@
-"""Background flows u_inf (INTERFACE.md, scene key [flow])."""
+"""Background flows u_inf (docs/reference/scene.md, scene key [flow])."""
 from __future__ import annotations
 
 import numpy as np

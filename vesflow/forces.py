@@ -1,4 +1,4 @@
-"""Interfacial forces (method reference, section 3; paper 2.5, 2.6, 3.12).
+"""Interfacial forces (docs/explanation/method.md, section 3; paper 2.5, 2.6, 3.12).
 
 All forces are traction jumps on the grid of a Geometry, shape (N, npts, 3).
 

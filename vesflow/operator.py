@@ -1,4 +1,4 @@
-"""The linear operator of the semi-implicit step (method reference 6; paper 3.6) as a petsc4py MatPython context.
+"""The linear operator of the semi-implicit step (docs/explanation/method.md, section 6; paper 3.6) as a petsc4py MatPython context.
 
 Unknowns per vesicle i, stored contiguously as one block of 4C: velocity u_i (3C
 coefficients, component-major) then tension sigma_i (C).  For every vesicle
@@ -7,9 +7,9 @@ coefficients, component-major) then tension sigma_i (C).  For every vesicle
     div_gamma_i u_i                                                               = 0
 
 with alpha_i = (1 + lambda_i)/2 and D_ij the (1 - lambda_j) double layer whose kernel gives
-D[1] = 1 inside (method reference 4).  The sign of D is the opposite of the one printed in
-the method reference, section 6: with it a spherical vesicle sediments at U / lambda instead
-of Stokes' velocity U for every lambda (tests/test_dynamics.py pins this).  Forces are formed on the upsampled q-grid and filtered to
+D[1] = 1 inside (docs/explanation/method.md, section 4).  The sign of D is that of
+docs/explanation/method.md, section 6: with the opposite one a spherical vesicle would sediment at
+U / lambda instead of Stokes' velocity U for every lambda (tests/test_dynamics.py pins this).  Forces are formed on the upsampled q-grid and filtered to
 degree p (Galerkin).  With explicit coupling only j = i is kept on the left.
 """
 from __future__ import annotations

@@ -10,8 +10,8 @@ or as strings; they are converted and checked here, and every problem raises
     opts = read_options(getter, scene)          # every other knob, defaults resolved
     opts.q_self, opts.adapt, opts["-ves_far"]
 
-Nothing here imports petsc4py at module level.  The list is in docs/scene.md and
-``help_text()`` (``vesflow run -help``).
+Nothing here imports petsc4py at module level.  The list is in docs/reference/options.md
+(``markdown_text()``, ``python -m vesflow.options --markdown``) and ``help_text()`` (``vesflow run -help``).
 """
 from __future__ import annotations
 
@@ -102,34 +102,34 @@ REGISTRY: tuple[Option, ...] = (
        gt=0, le=10),
     _O("-ves_near_blend", float, 0.0, "blend the near-singular value into the smooth rule over "
        "h_n .. h_n (1 + blend) (C^2 weight) instead of switching at h_n: a velocity smooth in the positions, "
-       "which high-order time steps need (docs/dynamics.md); 0 = switch", "quadrature", ge=0, le=1),
+       "which high-order time steps need (docs/explanation/dynamics.md); 0 = switch", "quadrature", ge=0, le=1),
     _O("-ves_far", str, "auto", "far-field sum: auto = the faster of direct and fmm by the cost model "
-       "measured on this machine (docs/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
+       "measured on this machine (docs/explanation/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
        choices=("auto", "direct", "fmm", "ewald")),
     _O("-ves_ewald_own", str, "auto", "ewald far field, a vesicle's own sources: smooth = their Fourier share removed "
        "by per-vesicle operators built once per set-up (a cheaper GMRES iteration, a dearer set-up), subtract = "
        "in every iteration, auto = smooth when the cost model says the set-up pays over 15 applications per set-up "
-       "(docs/far_field.md)", "quadrature", choices=("auto", "smooth", "subtract")),
+       "(docs/explanation/far_field.md)", "quadrature", choices=("auto", "smooth", "subtract")),
     _O("-ves_far_tol", float, 1e-8, "requested relative accuracy of the fmm / ewald far-field sum",
        "quadrature", gt=0, lt=1),
     _O("-ves_pc_lag", int, 50, "rebuild the block preconditioner from the current shapes after at most this "
-       "many solves (sooner when the GMRES iterations grow by half, docs/dynamics.md; 1 = every step)",
+       "many solves (sooner when the GMRES iterations grow by half, docs/explanation/dynamics.md; 1 = every step)",
        "solver", ge=1, le=100000),
     _O("-ves_self_precision", str, "double", "storage and product of the singular self operators: single "
-       "(float32) halves their memory, the largest per-vesicle array (docs/parallel.md)", "solver",
+       "(float32) halves their memory, the largest per-vesicle array (docs/explanation/parallel.md)", "solver",
        choices=("double", "single")),
     _O("-ves_pc_precision", str, "double", "block preconditioner's parts and LU factors: single (float32) "
-       "halves their memory; the KSP is then fgmres unless -ksp_type is given (docs/parallel.md)", "solver",
+       "halves their memory; the KSP is then fgmres unless -ksp_type is given (docs/explanation/parallel.md)", "solver",
        choices=("double", "single")),
     _O("-ves_blas_threads", int, 1, "BLAS threads (numpy's OpenBLAS); the OpenMP kernels use OMP_NUM_THREADS "
-       "(vesflow.threads, docs/benchmarks.md)", "solver", ge=1, le=1024),
+       "(vesflow.threads, docs/explanation/performance.md)", "solver", ge=1, le=1024),
     _O("-ves_coupling", str, "implicit", "inter-vesicle interactions in the solve (implicit) or "
        "lagged to the right-hand side (explicit: cheaper, less stable)", "solver",
        choices=("implicit", "explicit")),
     # -- time stepping ---------------------------------------------------------------------------
     _O("-ts_type", str, None, "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
        "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py; cheaper "
-       "than euler at the same error but the loosest, docs/accuracy_cost.md)",
+       "than euler at the same error but the loosest, docs/explanation/accuracy_cost.md)",
        "time stepping", choices=("euler", "sdc"), default_text="sdc (euler with -ves_coupling explicit)"),
     _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
        ge=2, le=9),
@@ -141,11 +141,11 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_adapt", str, None, "adaptive time step: none (fixed dt), doubling (one step vs two "
        "half steps), invariants (relative change of area and volume), sweeps (difference of the last "
        "two sdc sweeps), contraction (error of the kept sdc state from its sweeps' contraction; "
-       "misses the stiff collocation error, docs/dynamics.md)", "time stepping",
+       "misses the stiff collocation error, docs/explanation/dynamics.md)", "time stepping",
        choices=("none", "doubling", "invariants", "sweeps", "contraction"), default_text="doubling (euler), sweeps (sdc)"),
     _O("-ves_adapt_tol", float, 1e-2, "accepted error per unit simulated time, E / T", "time stepping", gt=0),
     _O("-ves_adapt_beta", float, None, "safety factor beta of the step-size update (sdc: its d_K varies by "
-       "+-40% from step to step, and with 0.9 a quarter of the steps were rejected, docs/accuracy_cost.md)",
+       "+-40% from step to step, and with 0.9 a quarter of the steps were rejected, docs/explanation/accuracy_cost.md)",
        "time stepping", default_text="0.9 (euler), 0.75 (sdc)",
        gt=0, le=1),
     _O("-ves_dt_min", float, 1e-6, "smallest time step (also bounds the first step); below it the run stops (exit status 3)",
@@ -167,7 +167,7 @@ REGISTRY: tuple[Option, ...] = (
        "corrections", gt=0, lt=1),
     _O("-ves_correct_max_its", int, 5, "Newton iterations of the correction", "corrections", ge=1, le=100),
     _O("-ves_keep_centroid", bool, True, "the post-step (reparameterization and area / volume correction) "
-       "keeps each vesicle's centroid: its net translation is removed (docs/dynamics.md)", "corrections"),
+       "keeps each vesicle's centroid: its net translation is removed (docs/explanation/dynamics.md)", "corrections"),
     _O("-ves_reparam", bool, True, "reparameterize surfaces (tangential moves) after each step", "corrections"),
     _O("-ves_reparam_dtau_max", float, 1e-3, "largest pseudo-time step of reparameterization",
        "corrections", gt=0),
@@ -177,7 +177,7 @@ REGISTRY: tuple[Option, ...] = (
        ge=1, le=10000),
     _O("-ves_reparam_rate", float, None, "reparameterization iterations per unit simulated time: a step of dt "
        "takes up to max(-ves_reparam_max_its, rate dt) (the grid distorts per unit time, not per step; euler's "
-       "short steps get that from -ves_reparam_max_its, docs/dynamics.md)",
+       "short steps get that from -ves_reparam_max_its, docs/explanation/dynamics.md)",
        "corrections", ge=0, default_text="1000 (sdc), 0 (euler)"),
     _O("-ves_reparam_attenuation", str, "n2", "weights a_n of the mesh-quality energy E = sum a_n^2 |Y_nm|^2 "
        "(paper Fig. 4): n2 = n^2, n, n16 = n^16 (scaled), step = H(n - 2p/3)", "corrections",
@@ -512,3 +512,40 @@ def help_text() -> str:
             lines.append(f"  {(o.name + ' ' + o.metavar).ljust(width)}default: {o.shown_default}")
             lines.append(f"      {o.help}{extra}{rng}")
     return "\n".join(lines)
+
+
+def markdown_text() -> str:
+    """docs/reference/options.md: the registry as Markdown tables, one per group
+    (``python -m vesflow.options --markdown > docs/reference/options.md``)."""
+    def cell(s: str) -> str:
+        return s.replace("|", "\\|")
+
+    lines = ["# Options", "",
+             "Every vesflow option, generated from the option registry (`vesflow/options.py`) by",
+             "`python -m vesflow.options --markdown > docs/reference/options.md`; `vesflow run -help`",
+             "prints the same list.  A command-line option overrides the scene's value of the same knob",
+             "and the options files before it; PETSc's own options (`-ksp_rtol`, `-ksp_monitor`,",
+             "`-pc_type`, `-log_view`, ...) work as usual.  A value outside its range, or an unknown",
+             "`-ves_` option, stops the run before any work with a one-line message (exit status 2)."]
+    for g in GROUPS:
+        lines += ["", f"## {g[0].upper() + g[1:]}", "",
+                  "| option | value | default | what it sets |", "|---|---|---|---|"]
+        for o in REGISTRY:
+            if o.group != g:
+                continue
+            what = o.help
+            if o.type in (int, float) and any(x is not None for x in (o.gt, o.ge, o.lt, o.le)):
+                what += "; " + _range_text(o)
+            if o.scene_key:
+                what += f"; overrides the scene key `{o.scene_key}`"
+            if o.alias_of:
+                what += f"; another spelling of `{o.alias_of}`"
+            lines.append(f"| `{o.name}` | `{cell(o.metavar)}` | {cell(o.shown_default)} | {cell(what)} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    import sys
+    if sys.argv[1:] != ["--markdown"]:
+        sys.exit("usage: python -m vesflow.options --markdown   (the options reference, docs/reference/options.md)")
+    sys.stdout.write(markdown_text())

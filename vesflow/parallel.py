@@ -1,4 +1,4 @@
-"""Vesicles over MPI ranks: the partition and its collective operations (docs/parallel.md).
+"""Vesicles over MPI ranks: the partition and its collective operations (docs/explanation/parallel.md).
 
 Layout "replicated state, distributed work": every rank holds the position coefficients of
 all vesicles (N x 3 x C numbers, 10 MB for 1408 vesicles at p = 16) and, after each solve, the

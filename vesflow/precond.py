@@ -1,4 +1,4 @@
-"""Preconditioners as PC python contexts (method reference 6).
+"""Preconditioners as PC python contexts (docs/explanation/method.md, section 6).
 
     -pc_type python -pc_python_type vesflow.precond.BlockJacobi    dense LU of each vesicle's self block
     -pc_type python -pc_python_type vesflow.precond.SphereSpectral the block of a sphere of the same size
@@ -24,7 +24,7 @@ step doubling, the steps after).
 Precision (-ves_pc_precision): single keeps the parts and the LU factors in float32 (factored by
 scipy's lu_factor on float32 blocks, applied with float32 solves): half the memory; the
 step's KSP is then fgmres (`Stepper.default_ksp_type`), whose residual is the true one, so the
-solution keeps double's accuracy (docs/parallel.md).
+solution keeps double's accuracy (docs/explanation/parallel.md).
 """
 from __future__ import annotations
 
@@ -173,7 +173,7 @@ TENSION_MODE_WEIGHT = 3.0    # |c| / (the block's estimate of the tension Schur 
 def regularize_tension_mode(B, C):
     """The self block B (4C x 4C: velocity 3C component-major, then tension C; the constant
     tension at 3C, the n = 0 divergence row at 3C) with its constant-tension mode regularized:
-    B + c e e^T, e = e_{3C}, c < 0 (docs/dynamics.md, "Spheres and near-spheres").
+    B + c e e^T, e = e_{3C}, c < 0 (docs/explanation/dynamics.md, "Spheres and near-spheres").
 
     A constant tension on a closed surface exerts 2 H sigma n, and the single layer of n
     vanishes on and off a closed surface: on a sphere (H constant) that column is zero, and the

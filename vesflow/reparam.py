@@ -1,4 +1,4 @@
-"""Reparameterization by tangential moves (paper 3.5; DESIGN 7).
+"""Reparameterization by tangential moves (paper 3.5; docs/explanation/method.md, section 7).
 
 Minimizes the spectral energy of paper 3.5
 
@@ -24,7 +24,7 @@ Finally the grid points are put back on the original surface (`project_onto`): o
 call in a run (1.8e-3 shape change on a badly parameterized prolate at p = 8, truncation
 error 2.8e-4; in a shear run the change equals the run's discretization error), or iterated
 (project_its > 1: 2.1e-4), which the run uses only near contact: at every step it keeps the
-descent from converging (docs/robustness.md section 2).
+descent from converging (docs/explanation/robustness.md section 2).
 """
 from __future__ import annotations
 

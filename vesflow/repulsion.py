@@ -1,4 +1,4 @@
-"""Short-range repulsion between vesicles and contact measures (paper 3.3 and eq. 3.13; DESIGN 3, 7).
+"""Short-range repulsion between vesicles and contact measures (paper 3.3 and eq. 3.13; docs/explanation/method.md, sections 3 and 7).
 
 For a p-grid point X of vesicle i near vesicle j, with X0 its projection on j (closest point,
 from the near search of the layer potentials, `lp.near`):

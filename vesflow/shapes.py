@@ -1,4 +1,4 @@
-"""Initial vesicle shapes as spherical-harmonic coefficients (method reference, section 1).
+"""Initial vesicle shapes as spherical-harmonic coefficients (docs/explanation/method.md, section 1).
 
 Every shape is parameterized over the unit sphere so that its coordinates are low-degree
 polynomials in sin/cos of theta and phi (exactly representable for p >= 5), then scaled

@@ -1,4 +1,4 @@
-"""The KSP of the step (method reference 6; paper 3.6), configured from PETSc's options database.
+"""The KSP of the step (docs/explanation/method.md, section 6; paper 3.6), configured from PETSc's options database.
 
 `configure_ksp` is the one place that sets the solver up: GMRES, rtol 1e-8, at most 1000
 iterations, nonzero initial guess, vesflow's block-Jacobi PC context unless -pc_type is given,

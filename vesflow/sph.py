@@ -1,4 +1,4 @@
-"""Real spherical harmonics on Gauss-Legendre grids (method reference, section 2; paper 3.1).
+"""Real spherical harmonics on Gauss-Legendre grids (docs/explanation/method.md, section 2; paper 3.1).
 
 Basis (orthonormal on the unit sphere, no Condon-Shortley phase):
     Y_n^0 = lam_n^0(cos t),  Y_n^{m,c} = sqrt2 lam_n^m(cos t) cos(m p),  Y_n^{m,s} = sqrt2 lam_n^m(cos t) sin(m p)
@@ -8,7 +8,7 @@ Flat coefficient layout of degree p ("full", (p+1)^2 entries), m-blocks:
     [m=0: n=0..p] [m=1 cos: n=1..p] [m=1 sin: n=1..p] ... [m=p cos: n=p] [m=p sin: n=p]
 The last entry, the (n=p, m=p, sin) mode, vanishes at every point of the p-grid (2p longitudes),
 so fields of the method live in the "reduced" space of the first C = (p+1)^2 - 1 entries
-(docs/conventions.md).  Rotations act on the full space; synthesis on a q-grid with q > p
+(docs/explanation/conventions.md).  Rotations act on the full space; synthesis on a q-grid with q > p
 resolves it.
 
 Grids: q+1 Gauss-Legendre latitudes (cos theta descending), 2q longitudes phi_j = pi j / q,

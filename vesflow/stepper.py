@@ -1,4 +1,4 @@
-"""One semi-implicit step and the first-order stepper (method reference 6; paper 3.6).
+"""One semi-implicit step and the first-order stepper (docs/explanation/method.md, section 6; paper 3.6).
 
     alpha u - sum_j [S_ij(dt B_j[u_j] + f_sigma(sigma_j)) - D_ij u_j]   (sign of D: see operator.py)
           = u_inf(X^n) + sum_j S_ij (f_b(X_j^n) + f_g,j + f_r,j),      div u = 0,
@@ -291,7 +291,7 @@ class Stepper:
         """gmres; fgmres when the default block-Jacobi PC is float32 (-ves_pc_precision single):
         left-preconditioned GMRES with a float32 PC leaves the solution 1.3e-7 (relative) from
         double's at any rtol, fgmres within 3e-14 at rtol 1e-8 in the same iterations (one
-        solve of the accuracy-cost pair, p = 12; docs/parallel.md)."""
+        solve of the accuracy-cost pair, p = 12; docs/explanation/parallel.md)."""
         if self.pc_precision is not None:
             dtype = PC_DTYPES[self.pc_precision]
         else:                                # a context of another kind (tests): its own precision, or double
@@ -325,7 +325,7 @@ LOCK_STIFFNESS = 1e3  # K of the locking force -K (mu / R) (u.n)_{n >= 2} n on s
 def sphere_constraints(surface, op, lock=True):
     """op with the two constraints of a sphere (reduced volume above 1 - SPHERE_TOL) set in it:
     StepOperator.gauge and .lock, which its apply, membrane_force and block parts include
-    (docs/dynamics.md, "Spheres and near-spheres", "Locked shape").
+    (docs/explanation/dynamics.md, "Spheres and near-spheres", "Locked shape").
 
     Gauge.  On a sphere a constant tension exerts no force (2 H sigma n with H constant; the
     single layer of n vanishes on and off a closed surface): its column is zero and the n = 0

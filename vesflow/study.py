@@ -107,7 +107,7 @@ class Recorder:
 
 def case_scene(scene, case, horizon=None):
     """The scene with the case's p, repulsion and (optionally) a shorter horizon, and frames only
-    at t = 0 and at the horizon: steps land on every output time (docs/dynamics.md), and the
+    at t = 0 and at the horizon: steps land on every output time (docs/explanation/dynamics.md), and the
     landings the scene's output times would add are not part of what a tolerance costs (the
     first study, before landing steps existed, had none).  The smallest gap of the table is
     then the one at the horizon, where the study's scene has its closest approach."""

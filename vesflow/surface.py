@@ -1,4 +1,4 @@
-"""Surfaces of many vesicles from spherical-harmonic coefficients (method reference, sections 1-2).
+"""Surfaces of many vesicles from spherical-harmonic coefficients (docs/explanation/method.md, sections 1-2).
 
 `Surface(coeffs, p)` holds the position coefficients (N, 3, C) of N vesicles of degree p.
 `Surface.geometry(q)` evaluates the differential geometry on the q-grid (q >= p; q > p

@@ -1,4 +1,4 @@
-"""One thread policy for the OpenMP kernels and BLAS (issue 16; docs/benchmarks.md, "Threads").
+"""One thread policy for the OpenMP kernels and BLAS (issue 16; docs/explanation/performance.md, "Threads").
 
 - OpenMP (the compiled kernels: far-field sums, near pairs, series at points): at most
   OMP_NUM_THREADS threads (the HPC convention; the Makefile exports 2), fewer while the load

@@ -2,7 +2,7 @@
 collection (opens in ParaView).
 
 Each vesicle is a closed, outward-oriented triangulated surface: the p-grid points
-(latitude-major, see docs/conventions.md) plus a north and a south pole point.
+(latitude-major, see docs/explanation/conventions.md) plus a north and a south pole point.
 Consecutive latitudes are joined by quads split in two triangles (wrapping in
 phi); each pole closes its cap with a triangle fan.  Per vesicle the points are
 the M grid points in grid order, then the north pole, then the south pole, so a

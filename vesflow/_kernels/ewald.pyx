@@ -1,8 +1,8 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/far_field.md, "Ewald").
+"""Real-space part of the spectral Ewald sums (Hasimoto splitting; docs/explanation/far_field.md, "Spectral Ewald").
 
 With ``r = x - y`` (target minus source), ``z = xi r``, ``e = exp(-z^2)`` and the kernels of
-method reference section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
+docs/explanation/method.md, section 4 written as ``S = G / (8 pi)``, ``D g = T:(g nw) / (8 pi)``
 (``G = I/r + r r^T/r^3``, ``T_ijl = -6 r_i r_j r_l / r^5``), the Hasimoto split
 ``G = G^R + G^F``, ``T = T^R + T^F`` has the real-space parts (Hasimoto 1959; Lindbo and
 Tornberg 2010, eq. 2.5; af Klinteberg and Tornberg 2014 for the stresslet)::
@@ -274,7 +274,7 @@ def kspace_apply(const double complex[:, :, :, ::1] P, const double[:, :, ::1] p
     the six components (00, 11, 22, 01, 02, 12) of S (if ``double``);
     W: (2, n0, n1, n2) gets U_0 + i U_1 and U_2, so that the type-2 transform of W holds
     u_0 + i u_1 and u_2.  The modes with an index -n/2 (no mirror -k on the grid) are set to
-    0: they are beyond k_max (docs/far_field.md).
+    0: they are beyond k_max (docs/explanation/far_field.md).
     psi: (n0/2 + 1, n1/2 + 1, n2/2 + 1), Psi at |k| (Psi is even in each component of k);
     k0, k1, k2: the wave numbers of the modes (-n/2 .. n/2 - 1, times 2 pi / period).
     OpenMP over the first axis.

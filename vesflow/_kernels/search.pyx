@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Cell-list near search (method reference, section 5.2: near pairs by a spatial sort, 27-neighbour search).
+"""Cell-list near search (docs/explanation/method.md, section 5.2: near pairs by a spatial sort, 27-neighbour search).
 
 :func:`near_pairs` finds every (target, source vesicle) pair with the target within a
 distance ``h`` of at least one source point of that vesicle (other vesicles only).
@@ -137,7 +137,7 @@ cdef void _one_target(const double* x, long tv,
 
 def near_pairs(const double[:, ::1] trg, const long[::1] trg_id,
                const double[:, ::1] src, const long[::1] src_id, double h):
-    """Near (target, source vesicle) pairs within distance h (method reference 5.2).
+    """Near (target, source vesicle) pairs within distance h (docs/explanation/method.md, section 5.2).
 
     Returns ``(pairs, dist)``: ``pairs`` int64 (P, 2) of ``(target index, source vesicle id)``
     with ``src_id[s] != trg_id[t]`` and ``|trg_t - src_s| <= h`` for at least one source s

@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Spherical-harmonic series and their first derivatives at arbitrary points (method reference 2).
+"""Spherical-harmonic series and their first derivatives at arbitrary points (docs/explanation/method.md, section 2).
 
 ``eval_points(padded, vesicle, theta, phi, val, dtheta, dphi)``: for each point i the series
 of group ``vesicle[i]`` (padded coefficients ``padded[v, k, kind, m, n]``, vesflow.sph.Transform.pad

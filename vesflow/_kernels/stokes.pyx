@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Direct Stokes layer-potential sums, source points -> target points (method reference, section 4).
+"""Direct Stokes layer-potential sums, source points -> target points (docs/explanation/method.md, section 4).
 
 All kernels use mu = 1 (the caller scales by 1/mu) and ``r = x - y`` (target minus source):
 
@@ -13,7 +13,7 @@ All kernels use mu = 1 (the caller scales by 1/mu) and ``r = x - y`` (target min
 
   The caller multiplies the density by ``(1 - lambda_j)`` of its source vesicle.
 
-Sources carry their quadrature weight (``f_k w_k``, ``n_k w_k``; docs/conventions.md), so
+Sources carry their quadrature weight (``f_k w_k``, ``n_k w_k``; docs/explanation/conventions.md), so
 every sum is a plain sum over source points.  Every function ACCUMULATES into ``out``
 (``out += ...``): pass zeros for a plain evaluation.  Pairs at distance exactly 0 are
 skipped (the exact-zero test, never a tolerance: the quadrature rules that call these
@@ -156,7 +156,7 @@ def set_vector_path(bint avx512):
 # ---------------------------------------------------------------------------------------
 def stokeslet_sum(const double[:, ::1] src, const double[:, ::1] f,
                   const double[:, ::1] trg, double[:, ::1] out):
-    """out[t] += sum_s S(trg_t, src_s) f_s  (Stokeslet, method reference 4 / eq. 2.8), mu = 1.
+    """out[t] += sum_s S(trg_t, src_s) f_s  (Stokeslet, docs/explanation/method.md, section 4, eq. 2.8), mu = 1.
 
     ``S f = (1/(8 pi)) (f/r + r (r.f)/r^3)``, ``r = trg_t - src_s``; pairs with r == 0 are skipped.
     src, f: (S, 3) (f already times the quadrature weight); trg, out: (T, 3).
@@ -176,7 +176,7 @@ def stokeslet_sum(const double[:, ::1] src, const double[:, ::1] f,
 
 def stresslet_sum(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
                   const double[:, ::1] trg, double[:, ::1] out):
-    """out[t] += sum_s D(trg_t, src_s) g_s  (lambda = 0 double layer, method reference 4 / eq. 2.9).
+    """out[t] += sum_s D(trg_t, src_s) g_s  (lambda = 0 double layer, docs/explanation/method.md, section 4, eq. 2.9).
 
     ``D g = -(3/(4 pi)) (r.nw)(r.g) r / r^5``, ``r = trg_t - src_s``; r == 0 skipped.
     nw: normal times quadrature weight (S, 3); g: density (S, 3).
@@ -310,7 +310,7 @@ def stokeslet_sum_pairs(const double[:, ::1] src, const double[:, ::1] f, const 
 
     Stokeslet of :func:`stokeslet_sum` restricted to the sources of one vesicle v (its
     sources are the contiguous range ``src_off[v]:src_off[v+1]``).  Used to subtract the
-    smooth-rule contribution of near and self pairs (method reference 5.3).  out: (P, 3).
+    smooth-rule contribution of near and self pairs (docs/explanation/method.md, section 5.3).  out: (P, 3).
     """
     _check3("src", src); _check3("f", f); _check3("trg", trg)
     _check_same("src", src.shape[0], "f", f.shape[0])

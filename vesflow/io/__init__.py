@@ -1,7 +1,7 @@
 """HDF5 output of a run: writer, reader, checkpoint and restart.
 
-One file per run, in the layout of ``docs/output.md`` (the contract of
-``shared/INTERFACE.md``).  The writer flushes after every frame, step batch,
+One file per run, in the layout of ``docs/reference/output.md`` (the user-facing contract,
+``docs/reference/cli.md``).  The writer flushes after every frame, step batch,
 timing update and checkpoint, so a run killed at any moment (even by SIGKILL)
 keeps everything written up to its last flush.
 

@@ -1,7 +1,7 @@
 """XDMF description of a run file (RUN.xmf beside RUN.h5): ParaView and VisIt read the frames
 as a temporal collection of triangulated surfaces straight from the HDF5 datasets (no copy).
 
-The mesh of one vesicle is its M = 2p(p+1) p-grid points in grid order (docs/conventions.md):
+The mesh of one vesicle is its M = 2p(p+1) p-grid points in grid order (docs/explanation/conventions.md):
 consecutive latitude rings joined by quads split in two triangles (wrapping in phi), each
 polar cap closed by a fan over its ring (nlon - 2 triangles, no pole point), every triangle
 counter-clockwise seen from outside.  Vesicle v's points are [v M, (v + 1) M) of a frame's

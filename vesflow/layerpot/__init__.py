@@ -1,1 +1,1 @@
-"""Stokes layer potentials: singular (self), near-singular and far-field quadrature (method reference, section 5)."""
+"""Stokes layer potentials: singular (self), near-singular and far-field quadrature (docs/explanation/method.md, section 5)."""

@@ -1,4 +1,4 @@
-"""sum_j S_j[f] + D_j[g] at the surface points of all vesicles, or at free targets (method reference 5).
+"""sum_j S_j[f] + D_j[g] at the surface points of all vesicles, or at free targets (docs/explanation/method.md, section 5).
 
 Per step (geometry frozen) `LayerPotentials.__init__` does the setup: the self operators,
 the upsampled far-field sources, the near pairs (cell lists), their projections and
@@ -37,15 +37,15 @@ from .singular import SelfOperators
 
 # applications of the layer potentials per set-up that ewald_own "auto" weighs the set-up of E_v
 # against (the GMRES iterations of the solves sharing a set-up plus their right-hand sides):
-# 18.5 in the periodic Taylor-Green run of 64 cells (docs/periodic.md: 2777 applications, 150
-# set-ups), 7-12 in the dilute runs of docs/accuracy_cost.md.  A constant, not the run's own
+# 18.5 in the periodic Taylor-Green run of 64 cells (docs/explanation/periodic.md: 2777 applications, 150
+# set-ups), 7-12 in the dilute runs of docs/explanation/accuracy_cost.md.  A constant, not the run's own
 # count, so that a restarted run makes the same choices as an uninterrupted one (as
 # costs.pc_rebuild_iterations)
 APPLIES_PER_SETUP = 15.0
 # cost of the own smooth operators E_v (ewald_own "auto"), CPU seconds of one thread: set-up per
 # (p-grid target, q-grid source) pair of a vesicle and layer; the GEMV per byte of the operators
 # (p = 16, q = 32: 27-31 ms per vesicle, single layer, benchmarks/setup_operators.py, i.e. 2.5e-8
-# per pair of 544 x 2112; 0.20 s for 2.9 GB at N = 512, benchmarks/iteration.py; docs/far_field.md
+# per pair of 544 x 2112; 0.20 s for 2.9 GB at N = 512, benchmarks/iteration.py; docs/explanation/far_field.md
 # "The own vesicle in the set-up", "Set-up of the self and own smooth operators")
 OWN_SETUP_PAIR = 2.5e-8
 # E_v in float32 from this far-field tolerance up (LayerPotentials._own_dtype)
@@ -64,7 +64,7 @@ class Settings:
         # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
         # operators built in the set-up, vesflow.layerpot.own_smooth), "subtract" (in the GMRES
         # iteration) or "auto": smooth when the cost model says the set-up pays for itself over
-        # `applies_per_setup` applications; docs/far_field.md, "The own vesicle in the set-up"
+        # `applies_per_setup` applications; docs/explanation/far_field.md, "Spectral Ewald" (the own vesicle)
         self.ewald_own = ewald_own
         self.applies_per_setup = float(applies_per_setup)
         self.near_blend = float(near_blend)   # width of the near/smooth blend beyond h_n, in units of h_n

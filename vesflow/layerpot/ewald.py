@@ -1,4 +1,4 @@
-"""Spectral Ewald sums of the Stokeslet and the stresslet (method reference section 5, regime 3).
+"""Spectral Ewald sums of the Stokeslet and the stresslet (docs/explanation/method.md, section 5, regime 3).
 
 For sources ``y_s`` (densities ``f_s`` = traction times weight; ``g_s`` with orientations
 ``nw_s`` = normal times weight) and targets ``x_t`` this evaluates, with the section 4
@@ -74,7 +74,7 @@ PREFACTOR_DOUBLE = 1.5
 PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol: with tol itself the error stays below 0.25 tol at
 # 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
-# benchmarks/nufft_eps_margin.py, docs/far_field.md "Free space, fourth session"; 0.5 before)
+# benchmarks/nufft_eps_margin.py, docs/explanation/far_field.md, "Accuracy of the Ewald sum"; 0.5 before)
 NUFFT_EPS_FACTOR = 1.0
 # weights of the cutoff rule (choose_params: the cutoff of least modelled cost), in the units of
 # CPU seconds of one thread: real space per (target, source) pair inside the cutoff (the estimate
@@ -214,7 +214,7 @@ def _exponents(lt, double_layer=True):
     real-space kernel at rc over T is ``~ (xi rc)^3 exp(-xi^2 rc^2)``; its Fourier sum carries one
     more power of k), the Stokeslet's ``P = 0.5`` when the double layer is absent (measured on
     the scene of benchmarks/far_field.py: error 0.1-0.3 tol with 0.5, 0.7-0.8 tol with 0,
-    0.006-0.03 tol with 1.5; docs/far_field.md)."""
+    0.006-0.03 tol with 1.5; docs/explanation/far_field.md)."""
     pref = PREFACTOR_DOUBLE if double_layer else PREFACTOR_SINGLE
     zr = lt + C_REAL
     zf = lt + C_FOURIER
@@ -232,7 +232,7 @@ def _free_period(box, w):
     """Free-space period per axis, ``P_a = 2 B_a + w``: the differences of the points lie in
     ``(-B_a, B_a)`` and the windowed kernel vanishes (to tol) beyond ``B_a + w``, so the images
     ``d + n P_a`` (n != 0) of a difference lie beyond ``P_a - B_a = B_a + w``: outside the
-    kernel's support.  (``2 (B_a + w)``, the kernel's support itself, before the fourth session.)"""
+    kernel's support.  (``2 (B_a + w)``, the kernel's support itself, would be w per axis longer.)"""
     return 2.0 * np.asarray(box, dtype=np.float64) + w
 
 
@@ -335,7 +335,7 @@ class EwaldSum:
     ``params`` an :class:`EwaldParams` (default: :func:`choose_params` for ``tol``);
     ``nufft`` "finufft" or "ducc0".  Densities per call (:meth:`evaluate`).
 
-    ``own`` (docs/far_field.md, "The own vesicle in the set-up"): "subtract" gives the sum of
+    ``own`` (docs/explanation/far_field.md, "Spectral Ewald" (the own vesicle)): "subtract" gives the sum of
     the module docstring (the own vesicle's pairs inside rc in the real-space sum, its full
     kernel subtracted); "smooth" leaves every target's own vesicle out of the real-space sum and
     subtracts nothing, so that the result ADDS ``sum_{s own} G^F(x_t - y_s) f_s`` (+ T^F) to the
@@ -399,7 +399,7 @@ class EwaldSum:
         self._nufft = Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
         # spread = (partition, this rank's source indices or slice): the type-1 transform of
         # this rank's sources only, the mode grid summed over the ranks (Allreduce), the rest
-        # replicated (docs/parallel.md: one node, the grid is small next to the far-field work);
+        # replicated (docs/explanation/parallel.md: one node, the grid is small next to the far-field work);
         # a rank that holds no other rank's sources (one process) spreads with the plan above
         self._spread = None
         if spread is not None:

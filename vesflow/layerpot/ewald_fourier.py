@@ -87,7 +87,7 @@ class Nufft:
         key = (kind, ntr)
         if key not in self._plans:
             import finufft
-            # upsampling 1.25 is 2-3x faster than finufft's default here (docs/far_field.md)
+            # upsampling 1.25 is 2-3x faster than finufft's default here (docs/explanation/far_field.md)
             # but its kernel width is capped at 16: 2.0 below eps 1e-9
             plan = finufft.Plan(kind, self.modes, n_trans=ntr, eps=self.eps, isign=-1 if kind == 1 else 1,
                                 dtype="complex128", nthreads=self.threads, modeord=0,
@@ -104,7 +104,7 @@ class Nufft:
             pts = self.src if kind == 1 else self.trg
             # oversampling 1.3 .. 1.6 instead of ducc0's own choice in 1.19 .. 2.51: type 1 at
             # N = 512 (1.08e6 sources, 146^3 modes) 1.64 -> 1.36-1.39 s, N = 64 0.21 -> 0.12 s
-            # (docs/far_field.md, "Speed: third session")
+            # (docs/explanation/far_field.md, "Speed: third session")
             # (ducc0 has kernels for them down to eps 5e-11; below, its own range)
             sigma = DUCC0_SIGMA if self.eps >= DUCC0_SIGMA_MIN_EPS else (1.19, 2.51)
             self._plans[kind] = ducc0.nufft.plan(nu2u=(kind == 1), coord=np.ascontiguousarray(pts),

@@ -1,4 +1,4 @@
-"""Far-field layer potentials over many vesicles (method reference, section 5, regime 3).
+"""Far-field layer potentials over many vesicles (docs/explanation/method.md, section 5, regime 3).
 
 For targets ``x_t`` carrying a group id ``trg_id[t]`` (the vesicle the target lies on, or
 any id that no source uses for a free target) and source points ``y_s`` (q-grid points)
@@ -24,7 +24,7 @@ Backends
     self part (target t against the sources of vesicle ``trg_id[t]``) is subtracted with the
     direct kernel ``stokeslet_sum_pairs`` / ``stresslet_sum_pairs``: O(N M Q) for N vesicles
     of M targets and Q sources each (0.3-0.6 s per call at N = 256, p = 16, q = 32 on
-    this machine; see docs/far_field.md).  Conventions (docs: SETUP_NOTES "fmm3dpy"): the
+    this machine; see docs/explanation/far_field.md).  Conventions (docs/explanation/far_field.md, "fmm"): the
     FMM stresslet is ``+(3/4pi)(r.mu)(r.nu) r / r^5``, so the orientation passed is
     ``strsvec = -n w``; ``pottarg`` comes back as (1, 3, T).
     Targets that coincide with a source of their own vesicle up to rounding (the p-grid and
@@ -46,7 +46,7 @@ Backends
 
 FMM accuracy: ``eps`` (default ``DEFAULT_EPS = 1e-8``) is fmm3dpy's requested precision;
 the error measured against the direct sum, relative to the largest velocity, is below
-``eps`` (docs/far_field.md).  1e-8 rather than 1e-6: the far field enters every GMRES
+``eps`` (docs/explanation/far_field.md).  1e-8 rather than 1e-6: the far field enters every GMRES
 matrix-vector product and the singular/near quadratures are accurate to 1e-6 .. 1e-10, so an
 FMM error of 1e-6 would dominate them, for a measured cost of only about 1.3x.
 """

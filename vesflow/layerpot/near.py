@@ -1,4 +1,4 @@
-"""Near-singular evaluation (method reference 5.2; paper 3.2.2) and the projection it rests on.
+"""Near-singular evaluation (docs/explanation/method.md, section 5.2; paper 3.2.2) and the projection it rests on.
 
 A target x within h_n of another surface is projected on it, x -> Y0 = X(theta*, phi*), by
 Gauss-Newton on |X(theta, phi) - x|^2 with exact spherical-harmonic derivatives and a

@@ -1,5 +1,5 @@
-"""The own vesicle's smooth Ewald share, removed in the per-step set-up (docs/far_field.md,
-"The own vesicle in the set-up (fourth session)").
+"""The own vesicle's smooth Ewald share, removed in the per-step set-up (docs/explanation/far_field.md,
+"Spectral Ewald", the own vesicle).
 
 With ``EwaldSum(own="smooth")`` (vesflow.layerpot.ewald) the far field at a p-grid target x_t
 of vesicle v holds, besides the sum over the other vesicles, the Fourier part's share of v's

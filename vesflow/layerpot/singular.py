@@ -1,4 +1,4 @@
-"""Self interaction: singular quadrature assembled into per-vesicle operators (method reference 5.1; paper 3.2.1).
+"""Self interaction: singular quadrature assembled into per-vesicle operators (docs/explanation/method.md, section 5.1; paper 3.2.1).
 
 For a target t = (theta0, phi0) of the p-grid the surface and the density are rotated so
 that t sits at the north pole, g = f o R_z(phi0) R_y(theta0), evaluated on the q-grid and
@@ -13,7 +13,7 @@ the Galerkin operator S_hat = P S (3C x 3C per vesicle), applied with one batche
 
 Precision (-ves_self_precision): the operators are assembled in float64 one vesicle at a time
 and stored in `dtype` (float64, or float32 at half the memory); float32 operators are applied in
-float32 (the density rounded to float32, the result returned in float64), docs/parallel.md.
+float32 (the density rounded to float32, the result returned in float64), docs/explanation/parallel.md.
 
 Double layer: the lambda = 0 kernel -(3/4pi)(r.n_y) r r^T / r^5 gives the principal value;
 the limits from outside/inside are pv -/+ density/2.

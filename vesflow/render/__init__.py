@@ -1,4 +1,4 @@
-"""Off-screen movies of a run: `vesflow render OUT.h5` (docs/output.md, "Rendering").
+"""Off-screen movies of a run: `vesflow render OUT.h5` (docs/reference/output.md, "Rendering").
 
     render("out/run.h5", movie="out/run.mp4", frames_dir="out/run_frames", color="tension")
 

@@ -216,7 +216,7 @@ def render(source, movie=None, frames_dir=None, color="tension", size=(960, 540)
 def _auto_workers(nf):
     """Worker processes by default: the idle CPUs (count minus the 1-minute load average),
     at most 4, for renders of 60 frames or more; 1 otherwise.  Mesa's llvmpipe already
-    draws on every CPU, so workers only pay off on idle CPUs (docs/output.md)."""
+    draws on every CPU, so workers only pay off on idle CPUs (docs/reference/output.md)."""
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:
@@ -274,7 +274,7 @@ class _Painter:
         self.pl = pv.Plotter(off_screen=True, window_size=list(spec.size))
         self.pl.set_background(spec.background)
         # anti-aliasing by FXAA (one screen-space pass): with Mesa's llvmpipe, 4x multisampling
-        # costs twice the whole frame (docs/output.md, "Speed")
+        # costs twice the whole frame (docs/reference/output.md, "Speed")
         self.pl.ren_win.SetMultiSamples(0)
         self.pl.renderer.SetUseFXAA(True)
         text_color = (0, 0, 0) if spec.background == "white" else (255, 255, 255)

@@ -17,7 +17,7 @@ not overlap; the check uses the analytic shapes only (no spherical harmonics):
   1e-3 of the radius.
 
 Candidates are pruned by bounding spheres with a k-d tree (periodic images included).
-The reference of every key is ``docs/scene.md``.
+The reference of every key is ``docs/reference/scene.md``.
 
 Modules: ``model`` (the frozen objects), ``parser`` (TOML -> Scene), ``validate`` (one-line
 errors), ``geometry`` (exact analytic shapes), ``packing`` (overlap checks, random packings).

@@ -143,7 +143,7 @@ class Vesicle:
 
     @property
     def scale(self) -> float:
-        """Linear factor from the unscaled shape (docs/scene.md) to this vesicle."""
+        """Linear factor from the unscaled shape (docs/reference/scene.md) to this vesicle."""
         return self.radius / self._unit.r0
 
     @property

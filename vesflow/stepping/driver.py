@@ -48,7 +48,7 @@ class Driver:
         # the state that will be kept, and drop the reparameterization of this step if it
         # alone brings the surfaces into contact.  In between, the reparameterization with its
         # projection iterated (`reparam.project_onto`: shape change below the truncation error,
-        # not used everywhere because it keeps the descent from converging, docs/robustness.md)
+        # not used everywhere because it keeps the descent from converging, docs/explanation/robustness.md)
         raw, post, reparam = cand.coeffs, self.post, self.opts["reparam"]
         cand.coeffs = self._post_processed(raw, reparam, dt=dt)
         if self.opts["collision"] and len(raw) > 1 and post.touching(cand.coeffs):

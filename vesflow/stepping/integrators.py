@@ -76,7 +76,7 @@ class Doubling:
         constraint set; max |X_2 - X_1| for every other vesicle (the estimate of paper 3.7).
 
         A sphere of fixed area and volume cannot deform, yet the linearized inextensibility
-        lets the step deform it at O(dt) (docs/dynamics.md): one step deforms by dt u, two half
+        lets the step deform it at O(dt) (docs/explanation/dynamics.md): one step deforms by dt u, two half
         steps by less, and the raw difference is O(dt), driving dt to dt_min.  After the
         correction both candidates differ by the O(dt^2) truncation error in their normal part
         (measured, p = 12, rate 1: err / dt = 0.038 dt normal; the tangential part is 0.27 dt
