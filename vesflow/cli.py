@@ -13,6 +13,7 @@ USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc
        vesflow check SCENE.toml [-ves_ and PETSc options]
        vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none] [--camera follow|fit|fixed]
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
+       vesflow plan SCENE.toml --error E [--budget SECONDS] [--pilot [FRACTION]]   the cheapest settings for E
        vesflow run -help          every vesflow option with its default
        mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/parallel.md)"""
 
@@ -42,10 +43,13 @@ def main(argv=None):
             threads.configure()                  # the runs' thread policy (vesflow.threads)
             from .study import main as study_main
             return study_main(rest)
+        if cmd == "plan":
+            from .planner import main as plan_main
+            return plan_main(rest)
         if cmd == "render":
             from .render import main as render_main
             return render_main(rest, prog="vesflow render")
-        raise SceneError(f"unknown command {cmd!r}: use run, check, render or study")
+        raise SceneError(f"unknown command {cmd!r}: use run, check, plan, render or study")
     except SceneError as e:
         _quiet_petsc_exit()
         if not _QUIET:
@@ -227,6 +231,11 @@ def cmd_run(rest):
     else:
         sc = scenemod.load_scene(scene_path) if scene_path else scenemod.default_scene()
         petsc_args, origins = cmdline, cmd_origins
+    plan = None
+    if restart is None and sc.accuracy is not None:      # [accuracy]: the planner's options first (ours win)
+        from .planner import plan_for_run
+        plan_args, plan_line, plan = plan_for_run(sc, petsc_args)
+        petsc_args, origins = plan_args + petsc_args, ["the plan for [accuracy]"] * len(plan_args) + origins
     getter = options.argv_getter(petsc_args)
     sc = options.apply_overrides(sc, getter)
     opts = options.read_options(getter, sc)
@@ -274,6 +283,9 @@ def cmd_run(rest):
                                   n_vesicles=sc.n_vesicles, periodic_length=sc.periodic_length,
                                   checkpoint_every=ck_every)
             writer.write_attrs(options_resolved=shlex.join(opts.as_argv()))
+            if plan is not None:
+                import json
+                writer.write_attrs(plan=json.dumps(plan))
     except Exception as e:                   # rank 0 could not create / reopen the file
         failure = e
     if size > 1:             # every rank learns it (no rank left waiting), rank 0 reports it
@@ -283,6 +295,8 @@ def cmd_run(rest):
     if failure is not None:
         raise failure
     progress = opts["progress"] == "on" or (opts["progress"] == "auto" and sys.stderr.isatty())
+    if rank0 and plan is not None:
+        print(plan_line)
     if rank0:
         print(f"vesflow: {sc.title}: {sc.n_vesicles} vesicles, p = {sc.p}, T = {sc.time.horizon:g} -> {out}"
               + (f" (restart from t = {float(checkpoint['time']):g})" if restart else ""))
