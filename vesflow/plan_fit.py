@@ -3,7 +3,9 @@ study, pilot runs that calibrate them on a scene, and runs of a plan against a r
 
     python -m vesflow.plan_fit fit [STUDY_DIR ...]            print FIT from the study's cached cases
     python -m vesflow.plan_fit reference SCENE --out DIR [-ts_max_time T]   a p = 16, E/T = 1e-4 sdc run
-    python -m vesflow.plan_fit verify SCENE --error E --ref REF.json [--out DIR] [-ts_max_time T]
+    python -m vesflow.plan_fit verify SCENE --error E --ref REF.json [--out DIR] [--pilot F] [-ts_max_time T]
+    python -m vesflow.plan_fit grid SCENE --ref REF.json --out DIR [--only scheme,p,tol] [-ts_max_time T]
+                                                the study's grid of settings run on the scene
 
 A run's error against another (`distance`): max over vesicles of the centroid difference
 (minimum image in a periodic cell) and of the difference of the semi-axes of the equivalent
@@ -168,6 +170,18 @@ def fit_from_study(dirs=STUDY_DIRS, scene_path="runs/accuracy_cost.toml"):
     return fit
 
 
+def in_sample(fit, dirs=STUDY_DIRS, scene_path="runs/accuracy_cost.toml", log=print):
+    """The fitted model against the cases it was fitted to (a markdown table)."""
+    ref, cases = study_cases(dirs)
+    pl = planner.Planner(scenemod.load_scene(scene_path), planner.Model(fit))
+    log("| scheme | p | E/T | error | predicted | solves | predicted | CPU s | predicted |\n|---|---|---|---|---|---|---|---|---|")
+    for r in sorted(cases, key=lambda r: (r["scheme"], r["p"], r["tol"])):
+        e = study.position_error(r, ref)
+        pr = pl.predict(planner.Setting(r["scheme"], r["p"], r["tol"], 2 * r["p"], 2 * r["p"], r["R"]))
+        log(f"| {r['scheme']} | {r['p']} | {r['tol']:g} | {e:.2e} | {pr.error:.2e} ({pr.error / e:.2f}) | "
+            f"{r['n_solves']} | {pr.solves:.0f} | {r['cpu']:.1f} | {pr.seconds:.1f} ({pr.seconds / r['cpu']:.2f}) |")
+
+
 # ----------------------------------------------------------------------------- pilots
 def calibrate(scene, pl, fraction=0.1, log=print):
     """Pilot runs to fraction * T on the scene: sdc at p = 8 with E/T = 2e-2 and 5e-3, euler at
@@ -216,6 +230,27 @@ def calibrate(scene, pl, fraction=0.1, log=print):
 
 
 # ----------------------------------------------------------------------------- verification
+def grid_settings():
+    """The study's grid: the (scheme, p, E/T) of its cases (repulsion off, q = 2p)."""
+    _, cases = study_cases()
+    keys = sorted({(r["scheme"], r["p"], r["tol"]) for r in cases})
+    return [planner.Setting(s, p, tol, 2 * p, 2 * p) for s, p, tol in keys]
+
+
+def grid(sc, path, ref, out, only=None):
+    """Run (cached) every grid setting on the scene; print error and CPU of each."""
+    stem = f"{os.path.basename(path).split('.')[0]}_T{sc.time.horizon:g}"
+    for s in grid_settings():
+        if only and only != f"{s.scheme},{s.p},{s.tol:g}":
+            continue
+        res = cached(os.path.join(out, "grid", f"{stem}_{s.scheme}_p{s.p}_tol{s.tol:g}.json"),
+                     lambda: run_setting(sc, s))
+        err = distance(res, ref, sc.periodic_length or None)
+        print(f"grid {s.scheme:5s} p = {s.p:2d} E/T = {s.tol:<6g}: error {err:.3g}, {res['cpu']:.3g} s CPU, "
+              f"{res['solves']} solves")
+    return 0
+
+
 def _scene_and_rest(argv):
     path, rest = argv[0], argv[1:]
     getter = optmod.argv_getter([a for a in rest if a.startswith("-ts_") or a.startswith("-ves_")])
@@ -223,18 +258,21 @@ def _scene_and_rest(argv):
 
 
 def main(argv):
-    if not argv or argv[0] not in ("fit", "reference", "verify"):
+    if not argv or argv[0] not in ("fit", "reference", "verify", "grid"):
         print(__doc__)
         return 2
     cmd, rest = argv[0], argv[1:]
     if cmd == "fit":
-        print(json.dumps(fit_from_study(tuple(rest) or STUDY_DIRS), indent=1))
+        dirs = tuple(rest) or STUDY_DIRS
+        fit = fit_from_study(dirs)
+        print(json.dumps(fit, indent=1))
+        in_sample(fit, dirs)
         return 0
     flags = {}
     args = []
     k = 0
     while k < len(rest):
-        if rest[k] in ("--out", "--ref", "--error", "--pilot"):
+        if rest[k] in ("--out", "--ref", "--error", "--pilot", "--only"):
             flags[rest[k]] = rest[k + 1]
             k += 2
         else:
@@ -251,6 +289,8 @@ def main(argv):
         return 0
     with open(flags["--ref"]) as f:
         ref = json.load(f)
+    if cmd == "grid":
+        return grid(sc, args[0], ref, flags["--out"], flags.get("--only"))
     E = float(flags["--error"])
     pl = planner.Planner(sc)
     if "--pilot" in flags:
