@@ -147,3 +147,34 @@ def test_run_with_accuracy_plans_says_it_in_one_line_and_stores_the_plan(tmp_pat
     assert plan["error_target"] == 1e-2 and plan["chosen"]["p"] == 6 and plan["predicted_error"] <= 1e-2
     assert f"-ts_type {plan['chosen']['scheme']}" in resolved
     assert f"-ves_adapt_tol {plan['chosen']['tol']:g}"[:20] in resolved or "-ves_adapt_tol" in resolved
+
+
+def test_pilot_factors_are_measured_over_predicted(one, monkeypatch):
+    from vesflow import plan_fit
+    L, off = 2.0, {"sdc_lo": 3e-4, "sdc_lo_fine": 0.0, "euler_lo": 2e-3, "sdc_hi": 1e-4}
+    runs = {}
+
+    def fake(scene, s, horizon):
+        key = {("sdc", 8, 2e-2): "sdc_lo", ("sdc", 8, 5e-3): "sdc_lo_fine", ("euler", 8, 2e-2): "euler_lo",
+               ("sdc", 12, 2e-2): "sdc_hi"}[(s.scheme, s.p, s.tol)]
+        runs[key] = horizon
+        solves = {"sdc_lo": 30, "sdc_lo_fine": 50, "euler_lo": 12, "sdc_hi": 30}[key]
+        return {"final": {"centroid": [[off[key] * L, 0.0, 0.0]], "length": [L]}, "solves": solves,
+                "cpu": 0.05 * solves * (s.p / 8) ** 2, "status": "ok"}
+
+    monkeypatch.setattr(plan_fit, "run_setting", fake)
+    pl = planner.Planner(one)
+    m = plan_fit.calibrate(one, pl, 0.25, log=lambda *a: None)
+    t_p, m0 = 0.25 * one.time.horizon, pl.model
+    assert set(runs) == set(off) and all(h == t_p for h in runs.values())
+    a = m0.fit["time"]["sdc"]["a"]
+    assert m.f_time["sdc"] == pytest.approx(3e-4 / (1 - 4.0 ** -a) / m0.e_time("sdc", 2e-2, t_p))
+    assert m.f_time["euler"] == pytest.approx(2e-3 / m0.e_time("euler", 2e-2, t_p))
+    assert m.f_space == pytest.approx(2e-4 / (m0.e_space(8, t_p) - m0.e_space(12, t_p)))
+    assert m.f_solves["euler"] == pytest.approx(12 / m0.solves("euler", 2e-2, t_p))
+    # the calibrated model predicts what the pilots measured (at the pilot's horizon)
+    sub = planner.Planner(planner.optmod.apply_overrides(one, planner.optmod.dict_getter({"-ts_max_time": t_p})), m)
+    e = sub.predict(planner.Setting("euler", 8, 2e-2, 16, 16))
+    assert e.e_time == pytest.approx(2e-3) and e.solves == pytest.approx(12)
+    assert e.seconds == pytest.approx(0.05 * 12)
+    assert "4 pilot runs" in m.pilot

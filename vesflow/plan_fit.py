@@ -183,7 +183,7 @@ def in_sample(fit, dirs=STUDY_DIRS, scene_path="runs/accuracy_cost.toml", log=pr
 
 
 # ----------------------------------------------------------------------------- pilots
-def calibrate(scene, pl, fraction=0.1, log=print):
+def calibrate(scene, pl, fraction=0.1, log=print, cache_dir=None):
     """Pilot runs to fraction * T on the scene: sdc at p = 8 with E/T = 2e-2 and 5e-3, euler at
     p = 8 with 2e-2, sdc at p = 12 with 2e-2.  Their differences give the scene's time errors
     (sdc: the two tolerances; euler: against the tighter sdc run) and spatial error (p = 8
@@ -201,7 +201,12 @@ def calibrate(scene, pl, fraction=0.1, log=print):
     predicted = sum(sub_pl.predict(s).seconds for s in sets.values())
     log(f"pilot    4 runs to t = {t_p:g} ({fraction:g} of T): predicted {predicted:.3g} s CPU")
     c0 = time.process_time()
-    out = {k: run_setting(scene, s, t_p) for k, s in sets.items()}
+    if cache_dir is None:
+        out = {k: run_setting(scene, s, t_p) for k, s in sets.items()}
+    else:                                    # plan_fit verify: the pilots once per scene
+        stem = f"{os.path.basename(scene.source).split('.')[0]}_T{scene.time.horizon:g}_t{t_p:g}"
+        out = {k: cached(os.path.join(cache_dir, "pilot", f"{stem}_{k}.json"), lambda s=s: run_setting(scene, s, t_p),
+                         log=log) for k, s in sets.items()}
     bad = [k for k, r in out.items() if r["final"] is None]
     if bad:
         raise NumericalFailure(f"pilot run {bad[0]} failed ({out[bad[0]]['status']})")
@@ -221,7 +226,7 @@ def calibrate(scene, pl, fraction=0.1, log=print):
         m.f_cost[scheme] = clip(np.exp(np.mean([np.log(out[k]["cpu"] / out[k]["solves"] /
                                                       m0.seconds_per_solve(scheme, sub_pl._solve_cost(sets[k])[0],
                                                                            scene.n_vesicles)) for k in keys])))
-    spent = time.process_time() - c0
+    spent = sum(r["cpu"] for r in out.values()) if cache_dir else time.process_time() - c0
     m.pilot = (f"calibrated by 4 pilot runs to t = {t_p:g} ({spent:.3g} s CPU): factors spatial {m.f_space:.2g}, "
                f"time sdc {m.f_time['sdc']:.2g} / euler {m.f_time['euler']:.2g}, solves sdc {m.f_solves['sdc']:.2g} / "
                f"euler {m.f_solves['euler']:.2g}, cost sdc {m.f_cost['sdc']:.2g} / euler {m.f_cost['euler']:.2g}")
@@ -294,7 +299,7 @@ def main(argv):
     E = float(flags["--error"])
     pl = planner.Planner(sc)
     if "--pilot" in flags:
-        pl.model = calibrate(sc, pl, float(flags["--pilot"]))
+        pl.model = calibrate(sc, pl, float(flags["--pilot"]), cache_dir=flags.get("--out"))
     best, runner = pl.plan(error=E)
     print(f"plan     {best.line()}")
     res = run_setting(sc, best.setting)
