@@ -44,6 +44,8 @@ def main(argv=None):
             from .study import main as study_main
             return study_main(rest)
         if cmd == "plan":
+            from . import threads
+            threads.configure()                  # pilot runs (--pilot): the runs' thread policy
             from .planner import main as plan_main
             return plan_main(rest)
         if cmd == "render":

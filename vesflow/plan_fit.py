@@ -4,6 +4,7 @@ study, pilot runs that calibrate them on a scene, and runs of a plan against a r
     python -m vesflow.plan_fit fit [STUDY_DIR ...]            print FIT from the study's cached cases
     python -m vesflow.plan_fit reference SCENE --out DIR [-ts_max_time T]   a p = 16, E/T = 1e-4 sdc run
     python -m vesflow.plan_fit verify SCENE --error E --ref REF.json [--out DIR] [--pilot F] [-ts_max_time T]
+    python -m vesflow.plan_fit table [DIR]       the verify runs against the grid (markdown)
     python -m vesflow.plan_fit grid SCENE --ref REF.json --out DIR [--only scheme,p,tol] [-ts_max_time T]
                                                 the study's grid of settings run on the scene
 
@@ -258,11 +259,53 @@ def grid(sc, path, ref, out, only=None):
 
 def _scene_and_rest(argv):
     path, rest = argv[0], argv[1:]
-    getter = optmod.argv_getter([a for a in rest if a.startswith("-ts_") or a.startswith("-ves_")])
+    getter = optmod.argv_getter(rest)
     return optmod.apply_overrides(scenemod.load_scene(path), getter)
 
 
+def table(out, log=print):
+    """Markdown: each verify run of OUT against its prediction and the fastest grid setting
+    (OUT/grid, and for the study's scene its cached cases) that reached the same error."""
+    log("| scene | E | plan | error (x E) | predicted | CPU s (x predicted) | predicted | fastest grid setting "
+        "reaching E: CPU s | grid / plan |\n|---|---|---|---|---|---|---|---|---|")
+    for path in sorted(glob.glob(os.path.join(out, "verify_*.json")), key=lambda p: (p.split("_E")[0], -float(
+            p.split("_E")[1][:-5]))):
+        with open(path) as f:
+            v = json.load(f)
+        with open(v["ref"]) as f:
+            ref = json.load(f)
+        sc = scenemod.load_scene(v["scene"])
+        period = sc.periodic_length or None
+        stem = os.path.basename(path)[len("verify_"):].split("_E")[0]
+        grid_runs = []
+        for g in glob.glob(os.path.join(out, "grid", f"{stem}_*.json")):
+            with open(g) as f:
+                r = json.load(f)
+            o = r["setting"]
+            grid_runs.append((f"{o['-ts_type']} p{o['-ves_p']} {o['-ves_adapt_tol']:g}", r["cpu"],
+                              distance(r, ref, period), "now"))
+        if v["ref"].endswith(f"{REFERENCE.key}.json"):            # the study's own cases
+            _, cases = study_cases()
+            have = {x[0] for x in grid_runs}
+            for r in cases:
+                name = f"{r['scheme']} p{r['p']} {r['tol']:g}"
+                if name not in have and r["R"] == 0:
+                    grid_runs.append((name, r["cpu"], study.position_error(r, ref), "study"))
+        reach = [x for x in grid_runs if x[2] is not None and x[2] <= v["target"]]
+        best = min(reach, key=lambda x: x[1]) if reach else None
+        o = v["setting"]
+        log(f"| {stem} | {v['target']:g} | {o['-ts_type']} p{o['-ves_p']} E/T {o['-ves_adapt_tol']:g}"
+            + (f" far {o['-ves_far_tol']:g}" if "-ves_far_tol" in o else "") + (" (pilot)" if v.get("pilot") else "")
+            + f" | {v['error']:.2e} ({v['error'] / v['target']:.2f}) | {v['predicted_error']:.2e} | {v['cpu']:.1f} "
+            f"({v['cpu'] / v['predicted_seconds']:.2f}) | {v['predicted_seconds']:.1f} | "
+            + (f"{best[0]}: {best[1]:.1f} ({best[3]}) | {best[1] / v['cpu']:.2f} |" if best else
+               f"none of {len(grid_runs)} | - |"))
+
+
 def main(argv):
+    if argv and argv[0] == "table":
+        table(argv[1] if len(argv) > 1 else "docs/study/plan")
+        return 0
     if not argv or argv[0] not in ("fit", "reference", "verify", "grid"):
         print(__doc__)
         return 2
@@ -311,7 +354,7 @@ def main(argv):
         os.makedirs(out, exist_ok=True)
         name = f"verify_{os.path.basename(args[0]).split('.')[0]}_T{sc.time.horizon:g}_E{E:g}.json"
         with open(os.path.join(out, name), "w") as f:
-            json.dump(dict(res, error=err, target=E, predicted_error=best.error, predicted_seconds=best.seconds,
+            json.dump(dict(res, error=err, target=E, scene=args[0], ref=flags["--ref"], predicted_error=best.error, predicted_seconds=best.seconds,
                            predicted_solves=best.solves, pilot=pl.model.pilot), f)
     return 0
 
