@@ -268,8 +268,10 @@ def table(out, log=print):
     (OUT/grid, and for the study's scene its cached cases) that reached the same error."""
     log("| scene | E | plan | error (x E) | predicted | CPU s (x predicted) | predicted | fastest grid setting "
         "reaching E: CPU s | grid / plan |\n|---|---|---|---|---|---|---|---|---|")
-    for path in sorted(glob.glob(os.path.join(out, "verify_*.json")), key=lambda p: (p.split("_E")[0], -float(
-            p.split("_E")[1][:-5]))):
+    def order(p):
+        head, tail = os.path.basename(p)[:-5].split("_E")
+        return head, "_pilot" in tail, -float(tail.split("_pilot")[0])
+    for path in sorted(glob.glob(os.path.join(out, "verify_*.json")), key=order):
         with open(path) as f:
             v = json.load(f)
         with open(v["ref"]) as f:
@@ -352,7 +354,8 @@ def main(argv):
     out = flags.get("--out")
     if out:
         os.makedirs(out, exist_ok=True)
-        name = f"verify_{os.path.basename(args[0]).split('.')[0]}_T{sc.time.horizon:g}_E{E:g}.json"
+        pilot = f"_pilot{float(flags['--pilot']):g}" if "--pilot" in flags else ""
+        name = f"verify_{os.path.basename(args[0]).split('.')[0]}_T{sc.time.horizon:g}_E{E:g}{pilot}.json"
         with open(os.path.join(out, name), "w") as f:
             json.dump(dict(res, error=err, target=E, scene=args[0], ref=flags["--ref"], predicted_error=best.error, predicted_seconds=best.seconds,
                            predicted_solves=best.solves, pilot=pl.model.pilot), f)
