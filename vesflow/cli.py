@@ -22,6 +22,7 @@ USAGE = """usage: vesflow run [SCENE.toml] [-o OUT.h5] [--restart OUT.h5] [PETSc
        vesflow render OUT.h5|OUT.pvd [-o movie.mp4] [--frames DIR] [--color tension|speed|none] [--camera follow|fit|fixed]
        vesflow export OUT.h5 [--vtk DIR]   OUT.xmf beside it (ParaView, VisIt); --vtk: .vtp files and a .pvd
        vesflow study accuracy-cost [SCENE.toml] [--quick] [--out DIR]   the paper's Table 3 experiment
+       vesflow plan SCENE.toml --error E [--budget SECONDS] [--pilot [FRACTION]]   the cheapest settings for E
        vesflow run -help          every vesflow option with its default
        mpiexec -n N vesflow run ...   the vesicles divided among N ranks (docs/explanation/parallel.md)"""
 
@@ -49,13 +50,18 @@ def main(argv=None):
             threads.configure()                  # the runs' thread policy (vesflow.threads)
             from .study import main as study_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return study_main(rest)
+        if cmd == "plan":
+            from . import threads
+            threads.configure()                  # pilot runs (--pilot): the runs' thread policy
+            from .planner import main as plan_main
+            return plan_main(rest)
         if cmd == "render":
             require_packages("vesflow render", RENDER_PACKAGES, "render")
             from .render import main as render_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return render_main(rest, prog="vesflow render")
         if cmd == "export":
             return cmd_export(rest)
-        raise SceneError(f"unknown command {cmd!r}: use run, check, render, export or study")
+        raise SceneError(f"unknown command {cmd!r}: use run, check, plan, render, export or study")
     except (SceneError, SettingsError) as e:
         _quiet_petsc_exit()
         if not _QUIET:
@@ -282,6 +288,11 @@ def _run(rest, stop):
     else:
         sc = scenemod.load_scene(scene_path) if scene_path else scenemod.default_scene()
         petsc_args, origins = cmdline, cmd_origins
+    plan = None
+    if restart is None and sc.accuracy is not None:      # [accuracy]: the planner's options first (ours win)
+        from .planner import plan_for_run
+        plan_args, plan_line, plan = plan_for_run(sc, petsc_args)
+        petsc_args, origins = plan_args + petsc_args, ["the plan for [accuracy]"] * len(plan_args) + origins
     getter = options.argv_getter(petsc_args)
     sc = options.apply_overrides(sc, getter)
     opts = options.read_options(getter, sc)
@@ -333,6 +344,8 @@ def _run(rest, stop):
             from .costs import decision_rules, decisions  # lazy: numpy is loaded after threads.early_environment() (main)
             writer.write_attrs(options_resolved=shlex.join(opts.as_argv()), decision_rules=json.dumps(decision_rules()),
                                decisions=json.dumps(decisions(sc, opts)))
+            if plan is not None:
+                writer.write_attrs(plan=json.dumps(plan))
     except Exception as e:                   # rank 0 could not create / reopen the file
         failure = e
     comm = PETSc.COMM_WORLD.tompi4py() if size > 1 else None
@@ -347,6 +360,8 @@ def _run(rest, stop):
     writer.defer_errors = True
     stop.comm, stop.writer = comm, writer
     progress = opts["progress"] == "on" or (opts["progress"] == "auto" and sys.stderr.isatty())
+    if rank0 and plan is not None:
+        print(plan_line)
     if rank0:
         print(f"vesflow: {sc.title}: {sc.n_vesicles} vesicles, p = {sc.p}, T = {sc.time.horizon:g} -> {out}"
               + (f" (restart from t = {float(checkpoint['time']):g})" if restart else ""))

@@ -25,14 +25,14 @@ errors), ``geometry`` (exact analytic shapes), ``packing`` (overlap checks, rand
 from __future__ import annotations
 
 from .geometry import biconcave_height_scale, euler_zyz, spheroid_axes, spheroid_reduced_volume
-from .model import (DEFAULT_SCENE_TEXT, FLOW_TYPES, SHAPES, Discretization, Domain, Effects, Flow, Fluid,
+from .model import (DEFAULT_SCENE_TEXT, Accuracy, FLOW_TYPES, SHAPES, Discretization, Domain, Effects, Flow, Fluid,
                     Gravity, Lattice, Output, Repulsion, Scene, Time, Vesicle)
 from .packing import check_overlaps, find_overlaps
 from .parser import default_scene, load_scene, parse_scene
 
 __all__ = [
     "Scene", "Vesicle", "Lattice", "Flow", "Fluid", "Domain", "Gravity", "Discretization",
-    "Time", "Repulsion", "Output", "Effects", "load_scene", "parse_scene", "default_scene",
+    "Time", "Repulsion", "Output", "Accuracy", "Effects", "load_scene", "parse_scene", "default_scene",
     "DEFAULT_SCENE_TEXT", "spheroid_axes", "spheroid_reduced_volume", "biconcave_height_scale",
     "euler_zyz", "find_overlaps", "check_overlaps", "SHAPES", "FLOW_TYPES",
 ]

@@ -107,6 +107,13 @@ class Repulsion:
 
 
 @dataclass(frozen=True)
+class Accuracy:
+    """[accuracy]: the error the run must reach (position error over the vesicle length at the
+    horizon); `vesflow run` plans the settings for it (vesflow.planner)."""
+    error: float
+
+
+@dataclass(frozen=True)
 class Output:
     file: str = "out/scene.h5"
     every: float = 0.1
@@ -217,6 +224,7 @@ class Scene:
     output: Output
     vesicles: tuple[Vesicle, ...]
     lattices: tuple[Lattice, ...] = ()
+    accuracy: Accuracy | None = None
     text: str = field(default="", repr=False, compare=False)
     source: str = field(default="<string>", compare=False)
     defaulted: frozenset = field(default=frozenset(), repr=False, compare=False)
@@ -319,6 +327,8 @@ class Scene:
             lines.append("gravity  g = " + _fmt(list(self.gravity.g)))
         if self.repulsion is not None:
             lines.append(f"repulsion radius {_num(self.repulsion.radius)}")
+        if self.accuracy is not None:
+            lines.append(f"accuracy error {_num(self.accuracy.error)} (vesflow run plans the settings: vesflow plan)")
         eff = self.effects()
         lines.append("effects  on: " + (", ".join(eff.on()) or "none"))
         lines.append("         off: " + (", ".join(eff.off()) or "none"))

@@ -13,7 +13,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 from ..errors import SceneError
 from .geometry import _unit_shape
-from .model import (BICONCAVE_V_DEFAULT, BICONCAVE_V_RANGE, DEFAULT_SCENE_TEXT, FLOW_TYPES, MAX_VESICLES, P_RANGE,
+from .model import (Accuracy, BICONCAVE_V_DEFAULT, BICONCAVE_V_RANGE, DEFAULT_SCENE_TEXT, FLOW_TYPES, MAX_VESICLES, P_RANGE,
                     SHAPES, SPREAD_KEYS, VESICLE_DEFAULTS, Discretization, Domain, Flow, Fluid, Gravity, Lattice,
                     Output, Repulsion, Scene, Time, Vesicle, _default_dt)
 from .packing import _random_packing, check_overlaps
@@ -55,7 +55,7 @@ def default_scene() -> Scene:
 # The parser
 # ----------------------------------------------------------------------------------------
 _TOP = ("title", "flow", "fluid", "domain", "gravity", "discretization", "time", "repulsion",
-        "output", "vesicle", "lattice")
+        "output", "vesicle", "lattice", "accuracy")
 _VESICLE_KEYS = ("shape", "reduced_volume", "axes", "radius", "center", "rotation", "bending_modulus",
                  "viscosity_contrast", "excess_density")
 _LATTICE_KEYS = ("count", "spacing", "origin", "volume_fraction", "box", "seed", "orientation", "gap",
@@ -113,6 +113,7 @@ class _Parser:
         time = self._time(top)
         repulsion = self._repulsion(top)
         output = self._output(top, time, stem)
+        accuracy = self._accuracy(top)
         vesicles = self._vesicles(top)
         lattices = []
         for idx, raw in enumerate(self._array_of_tables(top, "lattice")):
@@ -127,7 +128,7 @@ class _Parser:
         check_overlaps(vesicles, period)
         return Scene(title=title, flow=flow, fluid=fluid, domain=domain, gravity=gravity, discretization=disc,
                      time=time, repulsion=repulsion, output=output, vesicles=tuple(vesicles),
-                     lattices=tuple(lattices), text=self.text, source=self.source,
+                     lattices=tuple(lattices), accuracy=accuracy, text=self.text, source=self.source,
                      defaulted=frozenset(self.defaulted))
 
     def _domain(self, top):
@@ -197,6 +198,13 @@ class _Parser:
         if not t.has("radius"):
             return Repulsion(self._default("repulsion.radius", 0.02))
         return Repulsion(t.number("radius", gt=0))
+
+    def _accuracy(self, top):
+        t = self._section(top, "accuracy", ("error",))
+        if t is None:
+            return None
+        return Accuracy(t.number("error", required="the error the run must reach (a number in (0, 1), "
+                                 "e.g. 1e-3: position error over the vesicle length at the horizon)", gt=0, lt=1))
 
     def _output(self, top, time, stem):
         t = self._section(top, "output", ("file", "every")) or _Table({}, "output", ())
