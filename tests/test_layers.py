@@ -36,7 +36,8 @@ LAYERS = [
     ("stepping", ["vesflow.stepping", "vesflow.stepper", "vesflow.sdc", "vesflow.simulation",
                   "vesflow.collision", "vesflow.contact", "vesflow.correction", "vesflow.reparam"]),
     ("output", ["vesflow.io", "vesflow.vtk_export"]),
-    ("entry points", ["vesflow.cli", "vesflow.__main__", "vesflow.study", "vesflow.render"]),
+    ("entry points", ["vesflow.cli", "vesflow.__main__", "vesflow.study", "vesflow.render", "vesflow.planner",
+                      "vesflow.plan_fit", "vesflow.plan_command"]),
 ]
 LAZY = re.compile(r"#\s*lazy:\s*\S")
 

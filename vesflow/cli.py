@@ -51,9 +51,8 @@ def main(argv=None):
             from .study import main as study_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return study_main(rest)
         if cmd == "plan":
-            from . import threads
             threads.configure()                  # pilot runs (--pilot): the runs' thread policy
-            from .planner import main as plan_main
+            from .plan_command import main as plan_main  # lazy: numpy is loaded after threads.early_environment() (main)
             return plan_main(rest)
         if cmd == "render":
             require_packages("vesflow render", RENDER_PACKAGES, "render")
@@ -290,7 +289,7 @@ def _run(rest, stop):
         petsc_args, origins = cmdline, cmd_origins
     plan = None
     if restart is None and sc.accuracy is not None:      # [accuracy]: the planner's options first (ours win)
-        from .planner import plan_for_run
+        from .planner import plan_for_run  # lazy: numpy is loaded after threads.early_environment() (main)
         plan_args, plan_line, plan = plan_for_run(sc, petsc_args)
         petsc_args, origins = plan_args + petsc_args, ["the plan for [accuracy]"] * len(plan_args) + origins
     getter = options.argv_getter(petsc_args)

@@ -26,6 +26,7 @@ import numpy as np
 
 from . import options as optmod, planner, scene as scenemod, study
 from .errors import NumericalFailure, SceneError, VesflowError
+from .simulation import Run
 from .surface import Surface
 
 STUDY_DIRS = ("docs/study",)
@@ -48,7 +49,6 @@ def semi_axes(S):
 def run_setting(scene, setting, horizon=None):
     """Run the scene with a planner.Setting (frames at 0 and the horizon only, as the study);
     returns a JSON-able dict: status, cpu, wall, solves, steps, final centroid / length / axes."""
-    from .simulation import Run
     case = study.Case(setting.p, setting.tol, setting.R, setting.scheme)
     sc = study.case_scene(scene, case, horizon)
     given = dict(study.scheme_options(setting.scheme), **setting.options())
