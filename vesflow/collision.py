@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
+from .layerpot.evaluator import vesicles_of
 from .layerpot.near import Projection, near_distance, near_pairs_images
-from .parallel import Halo, vesicle_boxes
-from .surface import Surface
+from .parallel import Halo, Partition, vesicle_boxes
 
 
 def signed_gaps(surface, q, period=None, part=None, stats=None):
@@ -26,33 +26,27 @@ def near_projection(surface, q, period=None, part=None, stats=None):
     (vesicle-major), pairs[:, 1] the other vesicle; the projection's signed_distance and its
     normal (outward of the other vesicle).
     ``period``: triply periodic box (minimum image, vesflow.layerpot.near.near_pairs_images).
-    ``part`` (vesflow.parallel.Partition): only the p-grid points of this rank's vesicles,
-    against its own surfaces and those of the other ranks' vesicles whose bounding box lies
-    within h_n of one of its own (vesflow.parallel.Halo: their q-grid points exchanged, no
-    geometry of the other vesicles computed); pairs[:, 0] then counts the points of this
-    rank's vesicles.  ``stats`` (a dict): receives "received", the surfaces received."""
+    ``part`` (vesflow.parallel.Partition; default the one-rank Partition.single): only the
+    p-grid points of this rank's vesicles, against its own surfaces and those of the other
+    ranks' vesicles whose bounding box lies within h_n of one of its own (vesflow.parallel.Halo:
+    their q-grid points exchanged, no geometry of the other vesicles computed); pairs[:, 0]
+    then counts the points of this rank's vesicles.  ``stats`` (a dict): receives "received",
+    the surfaces received."""
     p, N = surface.p, surface.n_vesicles
     Tq = sph.transform(p, q)
-    if part is None:
-        known = np.arange(N, dtype=np.int64)
-        src = np.ascontiguousarray(surface.points(q).reshape(-1, 3))
-        trg = np.ascontiguousarray(surface.points().reshape(-1, 3))
-        h = float(near_distance(surface.area(), q).max())
-        mine = known
-        coeffs = surface.coeffs
-    else:
-        mine = np.asarray(part.idx, dtype=np.int64)
-        local = Surface(surface.coeffs[mine], p)
-        n = len(mine)
-        xq, xp = local.points(q), local.points()
-        h = float(near_distance([part.max(float(local.area().max()))], q).max())
-        halo = Halo(part, part.gather(vesicle_boxes(xq, xp)), h * (1.0 + 1e-6), period)
-        known = halo.known
-        src = np.ascontiguousarray(halo.exchange(xq.reshape(n, -1)).reshape(-1, 3))
-        trg = np.ascontiguousarray(xp.reshape(-1, 3))
-        coeffs = surface.coeffs[known]
-        if stats is not None:
-            stats["received"] = halo.n_received
+    part = Partition.single(N) if part is None else part
+    mine = np.asarray(part.idx, dtype=np.int64)
+    local = vesicles_of(surface, mine)
+    n = len(mine)
+    xq, xp = local.points(q), local.points()
+    h = float(near_distance([part.max(float(local.area().max()))], q).max())
+    halo = Halo(part, part.gather(vesicle_boxes(xq, xp)), h * (1.0 + 1e-6), period)
+    known = halo.known
+    src = np.ascontiguousarray(halo.exchange(xq.reshape(n, -1)).reshape(-1, 3))
+    trg = np.ascontiguousarray(xp.reshape(-1, 3))
+    coeffs = surface.coeffs[known]
+    if stats is not None:
+        stats["received"] = halo.n_received
     src_id = np.repeat(known, Tq.npts)
     trg_id = np.repeat(mine, sph.transform(p).npts)
     src_off = np.arange(len(known) + 1, dtype=np.int64) * Tq.npts

@@ -97,7 +97,7 @@ class LayerPotentials:
         self.N_total = surface.n_vesicles
         self.part = Partition.single(self.N_total) if part is None else part
         self.idx = self.part.idx
-        self.local = _vesicles(surface, self.idx)
+        self.local = vesicles_of(surface, self.idx)
         self.p, self.N = p, self.local.n_vesicles
         self.q_self = s.q_self or 2 * p
         self.q_far = s.q_far or 2 * p
@@ -471,7 +471,7 @@ class _Oriented:
         self.signed_distance = np.abs(proj.signed_distance)
 
 
-def _vesicles(surface, idx):
+def vesicles_of(surface, idx):
     """The Surface of the vesicles idx: `surface` itself (and its cached geometry) when idx are
     all of its vesicles in order."""
     if np.array_equal(idx, np.arange(surface.n_vesicles)):
