@@ -195,7 +195,7 @@ class Stepper:
 
         With a displacement e, the same operator with the right side S[B[e]] (correction_rhs)
         and a zero initial guess: the response w of the spectral deferred correction sweep
-        (vesflow.sdc), e + dt w = e + dt V[B[e + dt w]].
+        (vesflow.stepping.sdc), e + dt w = e + dt V[B[e + dt w]].
         """
         from petsc4py import PETSc
         surface = self.surface if surface is None else surface
