@@ -68,6 +68,7 @@ class Stepper:
         self._lp_cache = []
         self._ksp = None            # the one KSP (with its Mat and vectors), made at the first solve
         self._pc_record = None      # a preconditioner_state to rebuild at the next solve (a restart)
+        self._pc_adopted = False    # the first KSP's PC context became _pc_context
 
     @property
     def surface(self):
@@ -269,6 +270,9 @@ class Stepper:
             configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context, ksp_type=self.default_ksp_type())
             ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (_condition_estimate)
             self._ksp = (A, ksp, A.createVecRight(), A.createVecLeft(), A.createVecRight(), sizes)
+            if not self._pc_adopted and ksp.getPC().getType() == "python":
+                self._pc_context = ksp.getPC().getPythonContext()    # the default, or -pc_python_type's
+                self._pc_adopted = True                               # kept by the later KSPs
         pc = ksp.getPC()
         if pc.getType() == "python":                 # the context kept across solves (and KSPs)
             ctx = getattr(self, "_pc_context", None)
