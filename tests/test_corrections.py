@@ -219,8 +219,9 @@ def test_reparameterization_budget_is_per_unit_time(monkeypatch):
     run = sim.Run(sc, O.read_options(O.dict_getter({"-ves_reparam_rate": 1000}), sc))
     bad = badly_parameterized(0.15, p=8)[None]
     seen = []
-    real = sim.reparameterize
-    monkeypatch.setattr(sim, "reparameterize", lambda c, p, **kw: seen.append(kw["max_its"]) or real(c, p, **kw))
+    import vesflow.stepping.poststep as post
+    real = post.reparameterize
+    monkeypatch.setattr(post, "reparameterize", lambda c, p, **kw: seen.append(kw["max_its"]) or real(c, p, **kw))
     energy = {dt: spectral_energy(run._post_processed(bad, True, dt=dt), 8)[0] for dt in (0.01, 0.3)}
     assert seen == [20, 300]
     print(f"mesh energy {spectral_energy(bad, 8)[0]:.4g} -> {energy[0.01]:.4g} (dt 0.01), {energy[0.3]:.4g} (dt 0.3)")

@@ -80,11 +80,17 @@ class Run(Driver):
     err_order = property(lambda self: self.integrator.order)
     reparam_skipped = property(lambda self: self.post.reparam_skipped)
     reparam_iterated = property(lambda self: self.post.reparam_iterated)
-    quad_errors = property(lambda self: self.quadrature.errors)
     q_self = property(lambda self: int(self.stepper.lp_settings.q_self))
     q_near = property(lambda self: int(self.stepper.lp_settings.q_far))
     area0 = property(lambda self: self.post.area0, lambda self, a: setattr(self.post, "area0", a))
     volume0 = property(lambda self: self.post.volume0, lambda self, v: setattr(self.post, "volume0", v))
+
+    @property
+    def quad_errors(self):
+        """The last quadrature error estimates (after an adaptation only: -ves_quad_tol > 0)."""
+        if self.quadrature.errors is None:
+            raise AttributeError("quad_errors: the quadrature degrees are not adapted (-ves_quad_tol 0)")
+        return self.quadrature.errors
 
     def unwrapped_centroid(self):
         """Centroids (N, 3) with the lattice vectors taken off by the wrap added back."""

@@ -68,6 +68,7 @@ class Stepper:
         self._lp_cache = []
         self._ksp = None            # the one KSP (with its Mat and vectors), made at the first solve
         self._pc_record = None      # a preconditioner_state to rebuild at the next solve (a restart)
+        self._pc_adopted = False    # the first KSP's PC context became _pc_context
 
     @property
     def surface(self):
@@ -195,7 +196,7 @@ class Stepper:
 
         With a displacement e, the same operator with the right side S[B[e]] (correction_rhs)
         and a zero initial guess: the response w of the spectral deferred correction sweep
-        (vesflow.sdc), e + dt w = e + dt V[B[e + dt w]].
+        (vesflow.stepping.sdc), e + dt w = e + dt V[B[e + dt w]].
         """
         from petsc4py import PETSc
         surface = self.surface if surface is None else surface
@@ -269,6 +270,9 @@ class Stepper:
             configure_ksp(ksp, A, self.ksp_prefix, default_pc=self.default_pc_context, ksp_type=self.default_ksp_type())
             ksp.setComputeSingularValues(True)       # the condition estimate of M^-1 A (_condition_estimate)
             self._ksp = (A, ksp, A.createVecRight(), A.createVecLeft(), A.createVecRight(), sizes)
+            if not self._pc_adopted and ksp.getPC().getType() == "python":
+                self._pc_context = ksp.getPC().getPythonContext()    # the default, or -pc_python_type's
+                self._pc_adopted = True                               # kept by the later KSPs
         pc = ksp.getPC()
         if pc.getType() == "python":                 # the context kept across solves (and KSPs)
             ctx = getattr(self, "_pc_context", None)

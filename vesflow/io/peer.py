@@ -3,8 +3,7 @@
 Rank 0 writes the one HDF5 file (every rank holds the whole state, vesflow.parallel); the
 other ranks take this stand-in so that a run's control flow is the same on every rank: it
 decides which checkpoints are due exactly as OutputWriter does and calls `on_checkpoint`
-for them (the preconditioner is reset at every checkpoint on every rank, which keeps the
-iterates of a restart equal to those of the uninterrupted run).
+for them.
 """
 from __future__ import annotations
 
