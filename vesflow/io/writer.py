@@ -153,9 +153,10 @@ class OutputWriter:
     def _flush(self):
         """Flush HDF5's caches; the file is then consistent and the journal is emptied."""
         self._f.flush()
+        if self._raw.error is None:
+            self._raw.commit()
         if self._raw.error is not None:
             raise _Failed()
-        self._raw.commit()
         self._committed = (self.n_frames, self._last_frame_time(), self.last_checkpoint_time)
 
     def _last_frame_time(self):
@@ -412,6 +413,9 @@ class OutputWriter:
                 d.resize(keep_f, axis=0)
             stt = f["steps/time"][...]
             keep_s = int(np.argmax(stt >= tc - tol)) if np.any(stt >= tc - tol) else len(stt)
+            n_at_ck = f["checkpoint"].attrs.get("_vesflow_n_steps")
+            if n_at_ck is not None:     # the rows written before the checkpoint: also the rejected
+                keep_s = min(int(n_at_ck), len(stt))    # attempts at its time (a stop after a rejection)
             for d in f["steps"].values():
                 d.resize(keep_s, axis=0)
             a = f.attrs
@@ -452,10 +456,15 @@ class OutputWriter:
             if self._f.id.valid:
                 if earlier is None:
                     self.flush()
+                self._doing = "closing it"
                 self._f.close()
         finally:
             self._raw.close()
             self._f = None
+        if self.failure is None and self._raw.error is not None:     # HDF5's last writes, at the close
+            self.failure = self._output_error()
+            if not self.defer_errors:
+                raise self.failure
 
     def __enter__(self):
         return self
