@@ -167,7 +167,7 @@ class OutputWriter:
         e = self._raw.error
         cause = (os.strerror(e.errno) if e.errno else str(e)).lower().rstrip(".")
         n, tf, tc = self._committed
-        held = (f"{n} frames up to t = {tf:.6g}" if n else "no frame") + (
+        held = (f"{n} frame{'s' if n > 1 else ''} up to t = {tf:.6g}" if n else "no frame") + (
             f" and the checkpoint at t = {tc:.6g}" if tc is not None else "")
         if self._raw.rollback_error is not None:
             state = (f"it could not be put back to its last complete frame ({self._raw.rollback_error.strerror}): "
@@ -216,7 +216,7 @@ class OutputWriter:
         (N, M, 3) optional, poles (N, 2, 3) optional (north, south), image (N, 3) integers
         optional (periodic runs).  Returns the frame index."""
         N, M, C = self.n_vesicles, self.M, self.C
-        self._doing = f"writing frame {self.n_frames} (t = {float(time):.6g})"
+        self._doing = f"writing frame {self.n_frames} at t = {float(time):.6g}"
         values = {"time": np.float64(time)}
         given = dict(points=points, coefficients=coefficients, tension=tension, area=area, volume=volume,
                      centroid=centroid, bending_energy=bending_energy)
