@@ -246,6 +246,27 @@ def test_sigusr1_and_sigint_stop_the_same_way(signal_reference, tmp_path, sig):
     _stop_by_signal(signal_reference, tmp_path, sig)
 
 
+def test_a_second_signal_stops_at_once(signal_reference, tmp_path):
+    """Ctrl-C twice: the second ends the run by SIGINT's default action, in the middle of its step
+    (p = 10: a step of seconds); the file keeps its frame and checkpoint at t = 0."""
+    out = tmp_path / "twice.h5"
+    proc = popen(["run", signal_reference["scene"], "-o", out, "-ves_p", "10", "-ts_monitor"])
+    try:
+        wait_for_step(proc, 0)
+        proc.send_signal(signal.SIGINT)
+        time.sleep(0.05)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = proc.stderr.read()
+    clean(err, proc.returncode)
+    assert proc.returncode == -signal.SIGINT, (proc.returncode, err)
+    assert one_line(err) == f"vesflow: second SIGINT: stopped at once; --restart {out} continues from the last checkpoint"
+    assert list(read_output(out).time) == [0.0] and float(read_checkpoint(out)["time"]) == 0.0
+
+
 def _rank1_pid(mpiexec_pid):
     """The pid of rank 1 among the processes mpiexec started (PMI_RANK in its environment)."""
     deadline = time.time() + 30
@@ -336,9 +357,16 @@ def small_disk(tmp_path):
         subprocess.run(["umount", str(d)], capture_output=True)
 
 
-def test_full_disk_is_one_line_exit_3_a_readable_file_and_a_restart_once_there_is_space(reference, small_disk):
+@pytest.mark.parametrize("ranks", [1, pytest.param(2, marks=pytest.mark.slow)])
+def test_full_disk_is_one_line_exit_3_a_readable_file_and_a_restart_once_there_is_space(reference, small_disk,
+                                                                                      ranks):
+    """On two ranks the failed write of rank 0 stops both at the next step boundary (no rank left
+    waiting); the restart (on one rank) gives the one-rank run: the file holds frame 0 only."""
+    if ranks > 1 and not MPIEXEC.exists():
+        pytest.skip(f"no {MPIEXEC}")
     out = small_disk / "run.h5"
-    r = vesflow(["run", reference["scene"], "-o", out, "-ts_monitor"])
+    launcher = [str(MPIEXEC), "-n", str(ranks)] if ranks > 1 else []
+    r = vesflow(["run", reference["scene"], "-o", out, "-ts_monitor"], launcher)
     clean(r.stderr, r.returncode)
     assert r.returncode == 3, r.stderr
     line = one_line(r.stderr)
@@ -350,6 +378,7 @@ def test_full_disk_is_one_line_exit_3_a_readable_file_and_a_restart_once_there_i
     ref = reference["ref"]
     part = read_output(out)
     assert 1 <= part.n_frames == n < ref.n_frames and part.time[-1] == pytest.approx(t_frame)
+    assert ranks == 1 or n == 1
     np.testing.assert_array_equal(part.time, ref.time[:n])
     np.testing.assert_allclose(part.frames["coefficients"], ref.frames["coefficients"][:n], rtol=0, atol=1e-12)
     assert float(read_checkpoint(out)["time"]) == pytest.approx(t_ck)
