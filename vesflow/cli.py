@@ -357,7 +357,7 @@ def _run(rest, stop):
     # a failed write is kept by the writer and stops the run at the next step boundary on every
     # rank (the poll reduces it with the signals), then reported by rank 0
     writer.defer_errors = True
-    stop.comm, stop.writer = comm, writer
+    stop.comm, stop.writer, stop.out = comm, writer, out
     progress = opts["progress"] == "on" or (opts["progress"] == "auto" and sys.stderr.isatty())
     if rank0 and plan is not None:
         print(plan_line)

@@ -47,6 +47,7 @@ class StopRequest:
         self.writer = writer
         self.received = 0        # the first signal this process received
         self.code = 0            # what the ranks agreed on at the poll that stopped the run
+        self.out = None          # the output file (for the line of a second signal)
         self._previous = None
 
     def install(self):
@@ -66,7 +67,7 @@ class StopRequest:
             return
         # a second signal: stop now, by the signal's default action
         sys.stderr.write(f"\nvesflow: second {signal_name(signum)}: stopped at once; "
-                         "--restart FILE continues from the last checkpoint\n")
+                         f"--restart {self.out or 'FILE'} continues from the last checkpoint\n")
         sys.stderr.flush()
         signal.signal(signum, signal.SIG_DFL)
         os.kill(os.getpid(), signum)

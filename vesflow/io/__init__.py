@@ -1,9 +1,11 @@
 """HDF5 output of a run: writer, reader, checkpoint and restart.
 
-One file per run, in the layout of ``docs/reference/output.md`` (the user-facing contract,
-``docs/reference/cli.md``).  The writer flushes after every frame, step batch,
-timing update and checkpoint, so a run killed at any moment (even by SIGKILL)
-keeps everything written up to its last flush.
+One file per run, in the layout of ``docs/reference/output.md`` (the user-facing
+contract, ``docs/reference/cli.md``).  The writer flushes after every frame, step batch,
+timing update and checkpoint, through a journaled file layer (journal.py): a run
+killed at any moment (even by SIGKILL) or a write that fails (a full disk, an I/O
+error) leaves the file as it was after its last flush; the file is locked while
+it is written.
 
 Not rank-aware: rank 0 writes (every rank holds the whole state, vesflow.parallel); the
 other ranks take a PeerWriter, which keeps the checkpoint decisions without a file.

@@ -19,6 +19,7 @@ reader that locks (HDF5's default), fail at once with "in use by another process
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import fcntl
 import io
@@ -28,6 +29,7 @@ import struct
 _MAGIC = b"VFJ1"
 _HEAD = struct.Struct("<4sQ")        # magic, committed size
 _ENTRY = struct.Struct("<QQ")        # offset, length; then the old bytes
+_OPEN = {}                           # (device, inode) -> the JournaledFile this process writes
 
 
 class FileInUse(OSError):
@@ -65,19 +67,22 @@ class JournaledFile(io.RawIOBase):
         try:
             lock_exclusive(fd, self.path)
             if create:
-                os.ftruncate(fd, 0)
+                _truncate(fd, 0)
             else:
                 _rollback_locked(fd, self.path)      # a journal left by a killed writer
+            self._jfd = os.open(journal_path(self.path), os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666)
         except BaseException:
             os.close(fd)
             raise
         self.fd = fd
+        st = os.fstat(fd)
+        self._key = (st.st_dev, st.st_ino)
+        _OPEN[self._key] = self
         self.pos = 0
-        self.size = os.fstat(fd).st_size
+        self.size = st.st_size
         self.error = None           # the OSError of the first failed write
         self.rollback_error = None  # an OSError of the rollback after it (the journal is kept)
         self._memory = None         # after a failure: [(offset, bytes)] kept in memory
-        self._jfd = os.open(journal_path(self.path), os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o666)
         self.commit()
 
     # ------------------------------------------------------------------ journal
@@ -87,8 +92,11 @@ class JournaledFile(io.RawIOBase):
             return
         self.committed = self.size
         self._written = []          # (offset, length) written since the commit
-        os.ftruncate(self._jfd, 0)
-        os.pwrite(self._jfd, _HEAD.pack(_MAGIC, self.committed), 0)
+        try:
+            _truncate(self._jfd, 0)
+            _write_all(self._jfd, _HEAD.pack(_MAGIC, self.committed), 0)
+        except OSError as e:        # the file itself is consistent: nothing to roll back
+            self.error, self._memory = e, []
         self._jend = _HEAD.size
 
     def _save(self, offset, length):
@@ -185,7 +193,7 @@ class JournaledFile(io.RawIOBase):
             try:
                 if size < self.size:
                     self._save(size, self.size - size)
-                os.ftruncate(self.fd, size)
+                _truncate(self.fd, size)
             except OSError as e:
                 self._fail(e, (size, b""))
         self.size = size
@@ -203,10 +211,18 @@ class JournaledFile(io.RawIOBase):
                 os.close(self._jfd)
                 self._jfd = None
                 if self.rollback_error is None:
-                    os.unlink(journal_path(self.path))
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(journal_path(self.path))
             os.close(self.fd)
         finally:
+            _OPEN.pop(self._key, None)
             super().close()
+
+
+def _truncate(fd, size):
+    """Every change of a file's size and every write of the layer go through _truncate and
+    _write_all (the fault-injection tests replace them)."""
+    os.ftruncate(fd, size)
 
 
 def _write_all(fd, data, offset):
@@ -236,7 +252,7 @@ def _apply(fd, jfd):
     for off, old in reversed(records):
         _write_all(fd, old, off)
     if os.fstat(fd).st_size != committed:
-        os.ftruncate(fd, committed)
+        _truncate(fd, committed)
     return True
 
 
@@ -252,6 +268,16 @@ def _rollback_locked(fd, path):
         os.close(jfd)
     os.unlink(jp)
     return done
+
+
+def written_here(path):
+    """True if this process has the file open for writing (a JournaledFile): it is then
+    consistent on disk after each of the writer's operations, and read without a lock."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return False
+    return (st.st_dev, st.st_ino) in _OPEN
 
 
 def recover(path):

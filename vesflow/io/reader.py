@@ -8,13 +8,15 @@ import h5py
 import numpy as np
 
 from ..errors import SceneError
-from .journal import FileInUse, recover
+from .journal import FileInUse, recover, written_here
 from .layout import STEP_REASONS
 
 
 def open_run_file(path):
     """h5py.File(path, "r"), after rolling back a file that a killed run left mid-write
     (vesflow.io.journal.recover).  A file another process is writing is a SceneError."""
+    if written_here(path):
+        return h5py.File(path, "r", locking=False)
     try:
         recover(path)
         return h5py.File(path, "r")

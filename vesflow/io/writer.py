@@ -158,9 +158,10 @@ class OutputWriter:
     def _flush(self):
         """Flush HDF5's caches; the file is then consistent and the journal is emptied."""
         self._f.flush()
+        if self._raw.error is None:
+            self._raw.commit()
         if self._raw.error is not None:
             raise _Failed()
-        self._raw.commit()
         self._committed = (self.n_frames, self._last_frame_time(), self.last_checkpoint_time)
 
     def _sync_xdmf(self):
@@ -183,7 +184,7 @@ class OutputWriter:
         e = self._raw.error
         cause = (os.strerror(e.errno) if e.errno else str(e)).lower().rstrip(".")
         n, tf, tc = self._committed
-        held = (f"{n} frames up to t = {tf:.6g}" if n else "no frame") + (
+        held = (f"{n} frame{'s' if n > 1 else ''} up to t = {tf:.6g}" if n else "no frame") + (
             f" and the checkpoint at t = {tc:.6g}" if tc is not None else "")
         if self._raw.rollback_error is not None:
             state = (f"it could not be put back to its last complete frame ({self._raw.rollback_error.strerror}): "
@@ -232,7 +233,7 @@ class OutputWriter:
         (N, M, 3) optional, poles (N, 2, 3) optional (north, south), image (N, 3) integers
         optional (periodic runs), bending_energy_density (N, M) optional.  Returns the frame index."""
         N, M, C = self.n_vesicles, self.M, self.C
-        self._doing = f"writing frame {self.n_frames} (t = {float(time):.6g})"
+        self._doing = f"writing frame {self.n_frames} at t = {float(time):.6g}"
         values = {"time": np.float64(time)}
         given = dict(points=points, coefficients=coefficients, tension=tension, area=area, volume=volume,
                      centroid=centroid, bending_energy=bending_energy)
@@ -431,6 +432,9 @@ class OutputWriter:
                 d.resize(keep_f, axis=0)
             stt = f["steps/time"][...]
             keep_s = int(np.argmax(stt >= tc - tol)) if np.any(stt >= tc - tol) else len(stt)
+            n_at_ck = f["checkpoint"].attrs.get("_vesflow_n_steps")
+            if n_at_ck is not None:     # the rows written before the checkpoint: also the rejected
+                keep_s = min(int(n_at_ck), len(stt))    # attempts at its time (a stop after a rejection)
             for d in f["steps"].values():
                 d.resize(keep_s, axis=0)
             a = f.attrs
@@ -471,10 +475,15 @@ class OutputWriter:
             if self._f.id.valid:
                 if earlier is None:
                     self.flush()
+                self._doing = "closing it"
                 self._f.close()
         finally:
             self._raw.close()
             self._f = None
+        if self.failure is None and self._raw.error is not None:     # HDF5's last writes, at the close
+            self.failure = self._output_error()
+            if not self.defer_errors:
+                raise self.failure
 
     def __enter__(self):
         return self
