@@ -85,6 +85,9 @@ class Run:
         from .parallel import make_partition, world_size
         # the vesicles over the MPI ranks (None with one process: nothing gathered)
         self.part = make_partition(Surface(coeffs, self.p).centroid()) if world_size() > 1 else None
+        self.contacts = None              # touching steps in contact (vesflow/contact.py)
+        if opts["contact"] and opts["collision"] and scene.n_vesicles > 1:
+            self.contacts = Contacts(self.p, period, coeffs, opts["q_near"])
         self.stepper = Stepper(coeffs, self.p, params, phys, settings, coupling=opts["coupling"],
                                timers=self.timers, part=self.part, pc_precision=opts["pc_precision"])
         self.sdc = None                   # -ts_type sdc: the SDC steps of the stepper
@@ -109,8 +112,6 @@ class Run:
         self.counts = {"accepted": 0, "rejected": 0}
         self.reparam_skipped = 0          # accepted steps whose reparameterization would have made contact
         self.reparam_iterated = 0         # accepted steps kept out of contact by the iterated projection
-        self.contacts = (Contacts(self.p, scene_period(scene))    # touching steps in contact
-                         if opts["contact"] and opts["collision"] and scene.n_vesicles > 1 else None)
         self.rows = []
         self.iterations = 0               # GMRES iterations of every solve of this process
         self.first_step_at = None         # perf_counter() when the first step began
@@ -203,6 +204,8 @@ class Run:
             if touching:
                 st.coeffs, st.time, st.last = saved
                 return None, "collision", its, err
+        if check and self.contacts is not None:           # in contact: not closer than the target
+            st.coeffs = self.contacts.keep_apart(st.coeffs, self.q_near)
         return sol, "accepted", its, err
 
     def _touching(self):
