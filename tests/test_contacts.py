@@ -72,6 +72,26 @@ def test_resolve_separates_only_steps_that_start_in_contact():
     assert g0 == pytest.approx(0.5 * contact.ZONE * h, rel=0.05) and gc < 0 < moved
 
 
+def test_keep_apart_acts_only_in_contact():
+    """After a separation (watch set) an accepted state closer than TARGET h / 2 is moved to
+    TARGET h; one within [TARGET h / 2, ZONE h) is kept as it is; one beyond ZONE h clears the
+    watch; without the watch (no separation so far, start outside the zone) nothing is done."""
+    q = 2 * P
+    h = contact.grid_spacing(Surface(_pair(0.0), P))
+    c = contact.Contacts(P, start=_pair(0.5), q=q)
+    assert not c.watch
+    close = _pair(0.1 * contact.TARGET * h)
+    assert c.keep_apart(close, q) is close                           # not in contact: untouched
+    c.watch = True
+    out = c.keep_apart(close, q)
+    assert collision.min_gap(Surface(out, P), q) == pytest.approx(contact.TARGET * h, rel=0.5) and c.count == 1
+    mid = _pair(0.7 * contact.TARGET * h)
+    assert c.keep_apart(mid, q) is mid and c.watch
+    far = _pair(2 * contact.ZONE * h)
+    assert c.keep_apart(far, q) is far and not c.watch
+    assert contact.Contacts(P, start=_pair(0.5 * contact.ZONE * h), q=q).watch      # a start in contact
+
+
 def _pair_run(dz, T, every, scheme, **options):
     text = harness.pair_scene(1.3, dz, P, T, every=every, dt=0.05)
     return harness.simulate(text, allow_failure=True, **{"-ts_type": scheme}, **options)

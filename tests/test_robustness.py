@@ -281,8 +281,12 @@ def test_collision_detector_rejects_steps_and_run_ends_without_intersection(dz):
     with 1-3 collision rejections (docs/explanation/robustness.md, section 3).
     Frames only at 0 and 6: since steps land on the output times (issue 15) a frame every 0.1
     caps the steps at 0.1 and the overshooting steps this test is about never happen.
-    Measured with the landing steps: the same rejections as before them (dz = 0.15: t = 2.70 and
-    3.26 at dt = 1.12; dz = 0.22: t = 2.73 at dt = 1.14), T = 6 reached, no contact."""
+    Measured with the landing steps and euler: the same rejections as before them (dz = 0.15:
+    t = 2.70 and 3.26 at dt = 1.12; dz = 0.22: t = 2.73 at dt = 1.14), T = 6 reached, no contact.
+    With sdc, the default: dz = 0.15 / 0.22 have 3 / 1 overshoot rejections (t = 2.97, 4.13, 4.81 /
+    4.41 at dt = 0.54-0.88), then the pair comes into contact and the steps that start in
+    contact are separated (vesflow/contact.py; before, sdc stopped on collision rejections at
+    dt ~ 1e-6, t = 5.88 / 4.98); T = 6, min frame gap 1.5e-3 / 1.5e-3."""
     run, rec, failure = _run_pair(harness.pair_scene(1.3, dz, 6, 6.0, every=6.0, dt=0.05),
                                   **{"-ves_adapt_tol": 0.15})
     gaps = [f["min_gap"] for f in rec.frames]
@@ -299,10 +303,11 @@ def test_collision_detector_rejects_steps_and_run_ends_without_intersection(dz):
 @pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")   # the NaN candidate after contact
 def test_without_collision_detection_the_same_pair_intersects():
     """The control of the test above: dz = 0.15, -ves_adapt_tol 0.15, -ves_collision off.  The
-    overshooting step is accepted and the vesicles interpenetrate (measured: a frame with min gap
-    -0.035 and 4 grid points inside the other vesicle), after which GMRES fails and the error
-    estimate cannot be met (measured: exit at t = 3.84, as in the paper: "the simulation may even
-    break")."""
+    overshooting step is accepted and the vesicles interpenetrate (measured with euler: a frame
+    with min gap -0.035 and 4 grid points inside the other vesicle; with sdc, the default: -8.0e-3,
+    4 points), after which GMRES fails or the error estimate cannot be met (exit at t = 3.84 with
+    euler, 5.90 with sdc, as in the paper: "the simulation may even break").  The contact step
+    needs the detector (-ves_collision off switches both off)."""
     run, rec, failure = _run_pair(_pair(1.3, 0.15, 6, 6.0), **{"-ves_adapt_tol": 0.15, "-ves_collision": "off"})
     gaps = [f["min_gap"] for f in rec.frames]
     report("same pair, collision detection off", t_end=run.t, rejections=rejections(rec),

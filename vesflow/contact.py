@@ -9,7 +9,8 @@ dt < -ves_dt_min ends the run.  A candidate that touches is therefore treated by
 - the step started at a gap g0 >= ZONE h (h = sqrt(A_max / (2 p (p + 1))), the p-grid spacing):
   the step jumped across a gap it should have resolved (an overshoot); rejected, dt halved;
 - g0 < ZONE h: the surfaces are in contact at this resolution; the touching vesicles are moved
-  apart rigidly (a projection onto g >= 0 like the area/volume correction onto A, V: no change
+  apart rigidly (and, while the pair stays within ZONE h, any accepted state closer than
+  TARGET h / 2 too: Contacts.keep_apart) (a projection onto g >= 0 like the area/volume correction onto A, V: no change
   of shape, area, volume or parameterization) until the smallest gap is TARGET h, each of a
   touching pair (i, j) by the share R_j / (R_i + R_j) of the shift along the normal of the
   closest point (Stokes mobility ~ 1 / R: the pair's mean position is kept for equal radii).
@@ -77,12 +78,36 @@ def separate(coeffs, p, q, period=None, target=None):
 
 
 class Contacts:
-    """The contact step of a Run: resolve(candidate, start) -> separated coefficients or None
-    (an overshoot, or not cleared).  Keeps the record of the separations."""
+    """The contact step of a Run: resolve(candidate, start, q) -> separated coefficients or None
+    (an overshoot, or not cleared); keep_apart(kept, q) while in contact.  Keeps the record of
+    the separations."""
 
-    def __init__(self, p, period=None):
+    def __init__(self, p, period=None, start=None, q=None):
         self.p, self.period = p, period
         self.log = []          # (start gap, candidate gap, shift) of every separated step
+        # in contact: set by a separation or a start in the zone, cleared when the pair leaves it
+        self.watch = start is not None and min_gap(start, p, q, period) < ZONE * grid_spacing(Surface(start, p))
+
+    def keep_apart(self, kept, q):
+        """While in contact, an accepted state closer than TARGET h / 2 is separated to TARGET h
+        too: at gaps far below the grid spacing (1e-6 and less) the near-singular evaluation is
+        not resolved, and sdc's error estimate then rejected step after step (the detector case
+        dz = 0.22: 89 error-estimate rejections).  Leaves the zone: watch is cleared."""
+        if not self.watch:
+            return kept
+        p = self.p
+        h = grid_spacing(Surface(kept, p))
+        g = min_gap(kept, p, q, self.period)
+        if g >= ZONE * h:
+            self.watch = False
+            return kept
+        if g >= 0.5 * TARGET * h:
+            return kept
+        out, moved = separate(kept, p, q, self.period, TARGET * h)
+        if out is None:
+            return kept
+        self.log.append((g, g, moved))
+        return out
 
     def resolve(self, candidate, start, q):
         """candidate separated (or None) when the step from start (coefficients) touches; q the
@@ -95,6 +120,7 @@ class Contacts:
         out, moved = separate(candidate, p, q, self.period, TARGET * h)
         if out is not None:
             self.log.append((g0, min_gap(candidate, p, q, self.period), moved))
+            self.watch = True
         return out
 
     @property

@@ -63,7 +63,7 @@ class Run(Driver):
                                dt=None if checkpoint is None else float(checkpoint["dt"]),
                                t=None if checkpoint is None else state.t)
         self.quadrature = QuadratureAdaptor(self.stepper, opts["quad_tol"], opts["q_max"], self.timers)
-        self.contacts = (Contacts(self.p, self.period)    # touching steps in contact (vesflow.contact)
+        self.contacts = (Contacts(self.p, self.period, state.coeffs, opts["q_near"])   # vesflow.contact
                          if opts["contact"] and opts["collision"] and scene.n_vesicles > 1 else None)
         self.monitors = (([StepLog(log)] if monitor else []) + ([Progress()] if progress else [])
                          + ([Frames(writer), Checkpoints(writer)] if writer is not None else []))

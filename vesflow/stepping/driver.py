@@ -68,6 +68,8 @@ class Driver:
                     touching = post.touching(cand.coeffs)
             if touching:
                 return None, "collision", its, err
+        if self.opts["collision"] and len(raw) > 1 and self.contacts is not None:   # in contact: not closer than the target
+            cand.coeffs = self.contacts.keep_apart(cand.coeffs, self.q_near)
         return cand, "accepted", its, err
 
     def _post_processed(self, coeffs, reparam, project_its=1, dt=0.0):
