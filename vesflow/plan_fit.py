@@ -213,7 +213,7 @@ def calibrate(scene, pl, fraction=0.1, log=print, cache_dir=None):
         raise NumericalFailure(f"pilot run {bad[0]} failed ({out[bad[0]]['status']})")
     period = scene.periodic_length or None
     m = planner.Model(m0.fit)
-    clip = lambda x: float(min(max(x, 1e-2), 1e2))
+    clip = lambda x: float(min(max(x, 1e-4), 1e4))
     a_sdc = m0.fit["time"]["sdc"]["a"]
     e_sdc = distance(out["sdc_lo"], out["sdc_lo_fine"], period) / max(1 - 4.0 ** -a_sdc, 0.1)
     e_eul = distance(out["euler_lo"], out["sdc_lo_fine"], period)
