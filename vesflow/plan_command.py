@@ -36,7 +36,7 @@ def _parse(argv):
             vals[a] = v
             k += 2
         elif a == "--pilot":
-            frac = 0.1
+            frac = 1.0
             if k + 1 < len(argv) and not argv[k + 1].startswith("-"):
                 try:
                     frac = float(argv[k + 1])

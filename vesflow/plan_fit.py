@@ -184,7 +184,7 @@ def in_sample(fit, dirs=STUDY_DIRS, scene_path="runs/accuracy_cost.toml", log=pr
 
 
 # ----------------------------------------------------------------------------- pilots
-def calibrate(scene, pl, fraction=0.1, log=print, cache_dir=None):
+def calibrate(scene, pl, fraction=1.0, log=print, cache_dir=None):
     """Pilot runs to fraction * T on the scene: sdc at p = 8 with E/T = 2e-2 and 5e-3, euler at
     p = 8 with 2e-2, sdc at p = 12 with 2e-2.  Their differences give the scene's time errors
     (sdc: the two tolerances; euler: against the tighter sdc run) and spatial error (p = 8
@@ -213,7 +213,7 @@ def calibrate(scene, pl, fraction=0.1, log=print, cache_dir=None):
         raise NumericalFailure(f"pilot run {bad[0]} failed ({out[bad[0]]['status']})")
     period = scene.periodic_length or None
     m = planner.Model(m0.fit)
-    clip = lambda x: float(min(max(x, 1e-2), 1e2))
+    clip = lambda x: float(min(max(x, 1e-4), 1e4))
     a_sdc = m0.fit["time"]["sdc"]["a"]
     e_sdc = distance(out["sdc_lo"], out["sdc_lo_fine"], period) / max(1 - 4.0 ** -a_sdc, 0.1)
     e_eul = distance(out["euler_lo"], out["sdc_lo_fine"], period)
@@ -297,7 +297,7 @@ def table(out, log=print):
         best = min(reach, key=lambda x: x[1]) if reach else None
         o = v["setting"]
         log(f"| {stem} | {v['target']:g} | {o['-ts_type']} p{o['-ves_p']} E/T {o['-ves_adapt_tol']:g}"
-            + (f" far {o['-ves_far_tol']:g}" if "-ves_far_tol" in o else "") + (" (pilot)" if v.get("pilot") else "")
+            + (f" far {o['-ves_far_tol']:g}" if "-ves_far_tol" in o else "") + (f" (pilots to {path.split('_pilot')[1][:-5]} T)" if "_pilot" in path else "")
             + f" | {v['error']:.2e} ({v['error'] / v['target']:.2f}) | {v['predicted_error']:.2e} | {v['cpu']:.1f} "
             f"({v['cpu'] / v['predicted_seconds']:.2f}) | {v['predicted_seconds']:.1f} | "
             + (f"{best[0]}: {best[1]:.1f} ({best[3]}) | {best[1] / v['cpu']:.2f} |" if best else
