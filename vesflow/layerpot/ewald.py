@@ -74,13 +74,13 @@ PREFACTOR_DOUBLE = 1.5
 PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol: with tol itself the error stays below 0.25 tol at
 # 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
-# benchmarks/nufft_eps_margin.py, docs/far_field.md "Free space, fourth session"; 0.5 before)
+# experiments/nufft_eps_margin.py, docs/far_field.md "Free space, fourth session"; 0.5 before)
 NUFFT_EPS_FACTOR = 1.0
 # ducc0.nufft's range of oversampling factors (its default 1.19 .. 2.51 picks slower ones here)
 DUCC0_SIGMA = (1.3, 1.6)
 DUCC0_SIGMA_MIN_EPS = 5e-11
 # cost model of the parameter choice, CPU seconds of one thread, measured with
-# benchmarks/ewald_split.py: real space per (target, source) pair inside the cutoff (the
+# experiments/ewald_split.py: real space per (target, source) pair inside the cutoff (the
 # estimate of _pair_fraction; single layer; about the same again for the double layer), per
 # target (the cell traversal, its range list) and per own-vesicle pair (the
 # vectorized direct sum); NUFFT spreading and interpolation per point per transform per kernel
@@ -302,7 +302,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
 def make_params(tol, xi, rc, points, period=None, double_layer=True):
     """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``; the
     stresslet's error prefactor unless ``double_layer`` is False): for tests of the
-    independence of the result on xi and for benchmarks/ewald_split.py."""
+    independence of the result on xi and for experiments/ewald_split.py."""
     lt = math.log(1.0 / tol)
     kmax = 2.0 * xi * _exponents(lt, double_layer)[1]
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
