@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up everything vesflow needs, idempotently (see ../README.md and docs/setup.md).
+# Set up everything vesflow needs, idempotently (README.md, "Two commands").
 #
 # PETSc is built from PyPI sources once into an environment at a FIXED path outside the
 # clone (pip's cached PETSc wheels remember the venv that built them, so a venv inside a
