@@ -19,10 +19,8 @@ Process CPU time, best of --repeat, so that a shared machine disturbs the figure
 """
 import argparse
 import os
-import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402
 early_environment()
 

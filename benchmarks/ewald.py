@@ -17,13 +17,10 @@ process CPU.  A fitted growth exponent and the backend 'auto' picks are printed 
 """
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from far_field import fit_exponent, scene  # noqa: E402
 from vesflow.layerpot import far  # noqa: E402

@@ -25,12 +25,10 @@ cost model, scaled by measured / model of the previous size) above ``--max-secon
 """
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from vesflow.layerpot import far  # noqa: E402
 

@@ -42,7 +42,6 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 PCS = ("none", "bjacobi", "sphere")
 

@@ -23,12 +23,10 @@ far/near grid degree q").
 """
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from vesflow import shapes  # noqa: E402
 from vesflow.layerpot.evaluator import LayerPotentials, Settings  # noqa: E402

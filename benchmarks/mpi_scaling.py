@@ -20,7 +20,6 @@ import resource
 import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402  (before numpy: the run's thread policy)
 early_environment()
 

@@ -4,7 +4,7 @@ of each frame the vesicles cover.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/render_movie.py [--frames 300] [--workers N ...]
 
-The run file is synthetic (tests/render_runs.py: two oblate vesicles, p = 8, passing in
+The run file is synthetic (tests/harness.py, write_pair_run: two oblate vesicles, p = 8, passing in
 shear over T = 12 and drifting 20 radii apart), written with the io writer.  Times the
 command of the issue, `render OUT.h5 --frames DIR` (PNGs and the MP4, 960x540).  Runs with
 whatever vesflow is importable (PYTHONPATH=/path/to/other/checkout times another version:
@@ -46,7 +46,7 @@ def main():
     args = ap.parse_args()
 
     import importlib.util
-    spec = importlib.util.spec_from_file_location("render_runs", ROOT / "tests" / "render_runs.py")
+    spec = importlib.util.spec_from_file_location("harness", ROOT / "tests" / "harness.py")
     runs = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(runs)
     import vesflow.render as R

@@ -26,13 +26,11 @@ stream such as GEMV can exceed 100%).  For reference also the read bandwidth of 
 """
 import argparse
 import os
-import sys
 import time
 from types import SimpleNamespace
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from vesflow import shapes, sph  # noqa: E402
 from vesflow.layerpot.evaluator import LayerPotentials  # noqa: E402

@@ -16,12 +16,10 @@ vesicle's assembly (one thread) are printed instead (SelfOperators/OwnSmoothOper
 """
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from vesflow import shapes, sph, threads  # noqa: E402
 from vesflow.layerpot.own_smooth import OwnSmoothOperators  # noqa: E402

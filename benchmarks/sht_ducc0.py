@@ -13,12 +13,10 @@ function space), which the script asserts.  Also the set-up time of vesflow's tr
 """
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import ducc0  # noqa: E402
 

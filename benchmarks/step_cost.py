@@ -22,7 +22,6 @@ import sys
 import time
 
 T_START = time.perf_counter()
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402  (before numpy: the run's thread policy)
 early_environment()
 
@@ -125,7 +124,6 @@ def main(argv=None):
 def T_reset():
     global T_START
     T_START = time.perf_counter()
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402  (before numpy: the run's thread policy)
 early_environment()
 

@@ -14,11 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from vesflow.io import read_output
-except ImportError:  # run from a clone without installing vesflow
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from vesflow.io import read_output
+from vesflow.io import read_output
 
 MAX_LINES = 8
 

@@ -8,13 +8,8 @@ Headless machines: VTK_DEFAULT_OPENGL_WINDOW=vtkEGLRenderWindow (set automatical
 when DISPLAY is unset).  Options: --size 960x540, --fps, --clim LO HI, --view AZ EL.
 """
 import sys
-from pathlib import Path
 
-try:
-    from vesflow.render import main
-except ImportError:  # run from a clone without installing vesflow
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from vesflow.render import main
+from vesflow.render import main
 
 if __name__ == "__main__":
     sys.exit(main(prog="postprocess/render.py"))

@@ -10,16 +10,10 @@ image in a periodic box; costs about one collision check per frame).  A file tha
 still writing: HDF5_USE_FILE_LOCKING=FALSE python postprocess/run_report.py ...
 """
 import argparse
-import sys
-from pathlib import Path
 
 import numpy as np
 
-try:
-    from vesflow.io import read_output
-except ImportError:  # run from a clone without installing vesflow
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from vesflow.io import read_output
+from vesflow.io import read_output
 
 
 def report(path, gaps=False):

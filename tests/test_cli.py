@@ -6,6 +6,8 @@ import sys
 
 import pytest
 
+from tests.harness import ROOT
+
 VESFLOW = [sys.executable, "-m", "vesflow"]
 
 
@@ -13,7 +15,7 @@ def run(args, **kw):
     return subprocess.run(VESFLOW + args, capture_output=True, text=True, timeout=600, **kw)
 
 
-@pytest.mark.parametrize("scene", sorted(glob.glob(os.path.join(os.path.dirname(__file__), "..", "runs", "*.toml"))))
+@pytest.mark.parametrize("scene", sorted(glob.glob(os.path.join(ROOT, "runs", "*.toml"))))
 def test_every_scene_in_runs_checks(scene):
     r = run(["check", scene])
     assert r.returncode == 0, r.stderr

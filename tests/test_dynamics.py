@@ -148,7 +148,7 @@ def test_stimson_jeffery_series():
     lambda = 0.702, 0.768, 0.836, 0.892, 0.931 at alpha = 1, 1.5, 2, 2.5, 3, the touching limit
     0.645, and the method of reflections far away (lambda^-1 = 1 + 3/2 x - x^3 - 15/4 x^4 + O(x^5),
     x = a / distance)."""
-    from .harness import stimson_jeffery
+    from tests.harness import stimson_jeffery
     table = {1.0: 0.702, 1.5: 0.768, 2.0: 0.836, 2.5: 0.892, 3.0: 0.931}
     for alpha, lam in table.items():
         assert stimson_jeffery(2 * np.cosh(alpha)) == pytest.approx(lam, abs=6e-4)
@@ -187,7 +187,7 @@ def _sedimenting_pair(distance, p, T):
     (locked spheres, stepper.sphere_constraints: the unlocked linearized response fell 1.8% /
     2.8% faster at 3 / 2.5 radii).  Run to the horizon with no rejected step; the velocity is
     the centroid displacement over T."""
-    from .harness import Recorder, rejections, simulate, stimson_jeffery
+    from tests.harness import Recorder, rejections, simulate, stimson_jeffery
     run, rec = simulate(SEDIMENTING_PAIR.format(p=p, T=T, every=T / 2, z=distance / 2), recorder=Recorder)
     z = np.array([f["centroid"] for f in rec.frames])[:, :, 2]
     U = (z[0] - z[-1]) / T

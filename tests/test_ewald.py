@@ -717,7 +717,7 @@ def test_periodic_ewald_error_at_the_nufft_accuracy_it_requests(rng, layer):
     (p = 16, q = 32) in a periodic box of 5 against the Ewald sum at 1e-13, single layer alone
     (the Stokeslet's error prefactor) and double layer: error below tol / 2 at 1e-4 and 1e-6.
     Measured 0.24 / 0.16 tol (single), 0.23 / 0.15 (double); with eps = 5 tol 1.02 / 0.43 and
-    0.69 / 0.77 tol, with 3 tol 0.55 / 0.28 and 0.34 / 0.43 (benchmarks/nufft_eps_margin.py)."""
+    0.69 / 0.77 tol, with 3 tol 0.55 / 0.28 and 0.34 / 0.43 (experiments/nufft_eps_margin.py)."""
     src, sid, trg, tid, f, nw, g = sphere_lattice(np.random.default_rng(0), 8, 16, 32)
     dbl = layer == "double"
     dens = (None, nw, g) if dbl else (f, None, None)

@@ -6,71 +6,13 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
 
+from tests.harness import ROOT, synthetic_frames, write_synthetic
 from vesflow.io import (STEP_REASONS, OutputWriter, iter_frames, read_checkpoint, read_output)
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-# ---------------------------------------------------------------- synthetic run
-def unit_sphere_grid(p):
-    """(M, 3) unit-sphere points of the p-grid (cos(theta) descending, latitude-major)."""
-    x, _ = np.polynomial.legendre.leggauss(p + 1)
-    theta = np.arccos(x[::-1])
-    phi = np.pi * np.arange(2 * p) / p
-    T, P = np.meshgrid(theta, phi, indexing="ij")
-    return np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], axis=-1).reshape(-1, 3)
-
-
-def synthetic_frames(p=8, n_vesicles=3, n_frames=4, dt=0.5, seed=0):
-    """Spheres of radius 1 moving along x (vesicle v at speed 0.5 (v + 1)), a
-    tension that varies over the surface and in time, a rigid-rotation velocity."""
-    rng = np.random.default_rng(seed)
-    u = unit_sphere_grid(p)
-    M, C = len(u), (p + 1) ** 2 - 1
-    N = n_vesicles
-    frames = []
-    for k in range(n_frames):
-        t = k * dt
-        speed = 0.5 * (np.arange(N) + 1)
-        c = np.zeros((N, 3))
-        c[:, 0] = 3.0 * (np.arange(N) - (N - 1) / 2) + speed * t
-        c[:, 2] = 0.3 * np.arange(N)
-        pts = c[:, None, :] + u[None]
-        vel = np.zeros((N, M, 3))
-        vel[..., 0] = speed[:, None]
-        vel += 0.3 * np.cross([0.0, 1.0, 0.0], u)[None]  # rotation about y
-        frames.append(dict(
-            time=t, points=pts, coefficients=rng.standard_normal((N, 3, C)),
-            tension=u[None, :, 2] * (1 + np.arange(N))[:, None] + np.sin(t) * u[None, :, 0],
-            area=np.full(N, 4 * np.pi) * (1 + 1e-6 * k), volume=np.full(N, 4 * np.pi / 3) * (1 - 1e-6 * k),
-            centroid=c, bending_energy=np.full(N, 0.1 * 4 * np.pi) + 0.01 * k, velocity=vel))
-    return frames
-
-
-def write_synthetic(path, p=8, n_vesicles=3, n_frames=4, dt=0.5, checkpoint_every=1, velocity=True):
-    frames = synthetic_frames(p, n_vesicles, n_frames, dt)
-    with OutputWriter(path, scene_text='title = "synthetic"\n', options_text="-ves_p 8",
-                      version="test", p=p, n_vesicles=n_vesicles, periodic_length=0.0) as w:
-        for k, fr in enumerate(frames):
-            kw = dict(fr)
-            if not velocity:
-                kw.pop("velocity")
-            w.write_frame(**kw)
-            w.write_steps([dict(time=fr["time"], dt=dt, accepted=0, ksp_its=3, error_estimate=2.0,
-                                reason="error_estimate"),
-                           (fr["time"], dt / 2, 1, 5, 0.1, "accepted"),
-                           (fr["time"] + dt / 2, dt / 2, 1, 4, 0.2, 0)])
-            if checkpoint_every and k % checkpoint_every == 0:
-                w.write_checkpoint(dict(time=fr["time"], coefficients=fr["coefficients"], dt=dt / 2,
-                                        step=k, stepper=dict(name="sbdf1", history=None)))
-        w.write_timings(dict(setup=0.5, self=1.0, near=0.25, far=0.125, repar=0.0625, other=0.0, total=1.9375))
-    return frames
 
 
 # ---------------------------------------------------------------- tests
@@ -184,8 +126,7 @@ def test_checkpoint_interrupted_swap(tmp_path):
 
 _KILL_CHILD = r"""
 import sys, time
-sys.path.insert(0, {root!r}); sys.path.insert(0, {tests!r})
-from test_io import synthetic_frames
+from tests.harness import synthetic_frames
 from vesflow.io import OutputWriter
 fr = synthetic_frames(n_frames=1)[0]
 w = OutputWriter({path!r}, scene_text="", options_text="", version="t", p=8, n_vesicles=3, periodic_length=0)
@@ -202,8 +143,8 @@ for k in range(10**6):
 
 def test_sigkill_keeps_frames(tmp_path):
     path = tmp_path / "killed.h5"
-    code = _KILL_CHILD.format(root=str(ROOT), tests=str(ROOT / "tests"), path=str(path))
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    code = _KILL_CHILD.format(path=str(path))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, cwd=ROOT)
     try:
         written = -1
         deadline = time.time() + 30

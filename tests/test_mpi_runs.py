@@ -10,7 +10,7 @@ import pytest
 
 from vesflow.io import read_checkpoint, read_output
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 MPIEXEC = Path(sys.executable).parent / "mpiexec"
 ENV = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 VESFLOW = [sys.executable, "-m", "vesflow"]
 ENV = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
 SMALL = ["-ves_p", "4", "-ves_adapt", "none", "-ts_dt", "0.05"]       # the built-in scene, seconds

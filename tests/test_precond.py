@@ -221,7 +221,7 @@ def test_true_residual_report_names_the_constant_tension_mode(monkeypatch):
 def test_preconditioner_rebuilds_are_the_same_in_every_run():
     """The reuse rule prices a rebuild by the cost model, not a clock: two runs of the same
     scene rebuild at the same solves and take the same iterates (restarts rely on it)."""
-    from .harness import pair_scene, simulate
+    from tests.harness import pair_scene, simulate
     text = pair_scene(1.3, 0.2, 6, 1.0, dt=0.05, every=0.5)
     runs = [simulate(text, ves_adapt="none") for _ in range(2)]
     its = [[r[3] for r in rec.steps] for _, rec in runs]

@@ -12,8 +12,7 @@ pv = pytest.importorskip("pyvista")
 imageio_ffmpeg = pytest.importorskip("imageio_ffmpeg")
 from PIL import Image  # noqa: E402  (a pyvista dependency)
 
-from tests.render_runs import write_pair_run  # noqa: E402
-from tests.test_io import write_synthetic  # noqa: E402
+from tests.harness import write_pair_run, write_synthetic  # noqa: E402
 from vesflow import sph  # noqa: E402
 from vesflow.render import fit_camera, main, render  # noqa: E402
 from vesflow.render.camera import Extent, follow_cameras, project, view_basis  # noqa: E402
@@ -24,7 +23,7 @@ from vesflow.render.surfaces import RunFrames, auto_resolution, surface_on_grid 
 from vesflow.shapes import make_shape  # noqa: E402
 
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 SMALL = (480, 270)
 
 

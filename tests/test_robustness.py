@@ -17,8 +17,8 @@ from vesflow.options import REGISTRY
 from vesflow.reparam import ATTENUATIONS, project_onto, reparameterize, spectral_energy
 from vesflow.surface import Surface
 
-from . import harness
-
+from tests import harness
+from tests.harness import robustness_pair as _pair, run_pair as _run_pair
 
 
 # ------------------------------------------------------------------ helpers
@@ -262,12 +262,6 @@ def test_reparameterization_changes_run_at_discretization_error():
 
 
 # ------------------------------------------------------------------ 3. collisions
-def _pair(dx, dz, p, T, extra="", dt=0.05):
-    return harness.pair_scene(dx, dz, p, T, every=0.1, extra=extra, dt=dt)
-
-
-def _run_pair(text, **options):
-    return harness.simulate(text, allow_failure=True, **options)
 
 
 @pytest.mark.parametrize("dz", [0.15, 0.22])

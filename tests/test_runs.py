@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 RUNS = ROOT / "runs"
 VESFLOW = [sys.executable, "-m", "vesflow"]
 ENV = dict(os.environ, OMP_NUM_THREADS="1")

@@ -4,7 +4,6 @@ the overlap test agrees with brute force, and command-line options override scen
 import copy
 import dataclasses
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ from vesflow import scene as S
 from vesflow.scene import geometry as G, packing as PK, parser as SP
 from vesflow.errors import OptionError, SceneError
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 
 
 # ---------------------------------------------------------------- a tiny TOML writer

@@ -1,13 +1,12 @@
 """Spectral deferred correction (vesflow/sdc.py, issue 18): nodes, quadrature, observed order."""
 import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from vesflow.sdc import collocation_order, error_estimate, integration_matrix, lobatto_nodes, radau_nodes
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 
 
 def _order_bench():

@@ -18,18 +18,12 @@ from vesflow.costs import solves_per_step
 from vesflow.errors import ConvergenceError
 from vesflow.simulation import Run
 from vesflow.stepper import Stepper
-from vesflow.surface import Surface
 
-from . import harness
+from tests import harness
+from tests.harness import (BICONCAVE, CROWD, LAMBDA10, ONE, SHEAR, AngleRecorder as Recorder,
+                           invariants, simulate_angles)
 
 pytestmark = pytest.mark.stability
-
-
-class Recorder(harness.Recorder):
-    """harness.Recorder plus the long-axis angle in the shear plane."""
-
-    def frame_extras(self, coefficients, p):
-        return {"angle": _long_axis_angle(coefficients, p)}
 
 
 # This suite runs with -ts_type euler, the scheme its figures (step, rejection and solve counts,
@@ -39,37 +33,7 @@ EULER = {"-ts_type": "euler"}
 
 
 def simulate(text, **options):
-    return harness.simulate(text, recorder=Recorder, **{**EULER, **options})
-
-
-def invariants(name, run, rec, *, area_tol=1e-6, mesh_factor=5.0, box=50.0):
-    """Check and print the invariants of a finished run; returns them as a dict."""
-    steps = rec.steps
-    acc = [r for r in steps if r[2]]
-    rej = {}
-    for r in steps:
-        if not r[2]:
-            rej[r[5]] = rej.get(r[5], 0) + 1
-    area = np.array([f["area"] for f in rec.frames]) / np.asarray(run.area0)
-    vol = np.array([f["volume"] for f in rec.frames]) / np.asarray(run.volume0)
-    E = np.array([f["mesh_energy"] for f in rec.frames])
-    gaps = [f["min_gap"] for f in rec.frames]
-    cent = run.stepper.surface.centroid()
-    inv = {"accepted": len(acc), "rejected": rej, "t": run.t, "frames": len(rec.frames),
-           "area_drift": float(np.abs(area - 1).max()), "volume_drift": float(np.abs(vol - 1).max()),
-           "mesh_energy_ratio": float((E / E[0]).max()), "min_gap": float(min(gaps)),
-           "contacts": int(max(f["contacts"] for f in rec.frames)),
-           "max_its": int(max(r[3] for r in acc)) if acc else 0}
-    print(f"\n[stability] {name}: " + ", ".join(f"{k} = {v:.3g}" if isinstance(v, float) else f"{k} = {v}"
-                                              for k, v in inv.items()))
-    assert run.t == pytest.approx(run.horizon, rel=1e-12) or run.counts["accepted"] == run.opts["ts_max_steps"]
-    assert all(r[5] == "accepted" for r in acc)                  # GMRES converged on every accepted step
-    assert run.stepper.surface.n_vesicles == len(run.area0)       # no vesicle lost ...
-    assert np.all(np.isfinite(run.stepper.coeffs)) and np.abs(cent).max() < box   # ... or thrown away
-    assert inv["contacts"] == 0 and inv["min_gap"] > 0           # no intersection at any frame
-    assert inv["area_drift"] < area_tol and inv["volume_drift"] < area_tol
-    assert inv["mesh_energy_ratio"] < mesh_factor
-    return inv
+    return simulate_angles(text, **{**EULER, **options})
 
 
 # ------------------------------------------------------------------ near contact
@@ -98,27 +62,6 @@ def test_near_contact_in_shear():
 
 
 # ------------------------------------------------------------------ crowding
-CROWD = """
-title = "crowd"
-[flow]
-type = "shear"
-rate = 1.0
-[discretization]
-p = {p}
-[time]
-horizon = {T}
-dt = 0.02
-[output]
-every = {every}
-[repulsion]
-radius = {R}
-[[lattice]]
-volume_fraction = 0.35
-count = 27
-seed = 3
-gap = 0.05
-vesicle = {{ shape = "oblate", reduced_volume = 0.9, bending_modulus = 0.1 }}
-"""
 
 
 def test_crowding_27_vesicles_at_35_percent():
@@ -135,24 +78,6 @@ def test_crowding_27_vesicles_long():
 
 
 # ------------------------------------------------------------------ low reduced volume
-BICONCAVE = """
-title = "biconcave"
-{flow}
-[discretization]
-p = {p}
-[time]
-horizon = {T}
-dt = 0.02
-[output]
-every = {every}
-[[vesicle]]
-shape = "biconcave"
-reduced_volume = 0.65
-center = [0.0, 0.0, 0.0]
-rotation = [0.0, 0.7, 0.0]
-bending_modulus = 0.05
-"""
-SHEAR = "[flow]\ntype = \"shear\"\nrate = 1.0"
 
 
 def test_biconcave_065_in_shear():
@@ -189,34 +114,6 @@ def test_biconcave_065_long():
 
 
 # ------------------------------------------------------------------ high viscosity contrast
-LAMBDA10 = """
-title = "tumbling"
-[flow]
-type = "shear"
-rate = 1.0
-[discretization]
-p = {p}
-[time]
-horizon = {T}
-dt = 0.05
-[output]
-every = {every}
-[[vesicle]]
-shape = "prolate"
-reduced_volume = 0.8
-rotation = [0.0, 1.2, 0.0]
-viscosity_contrast = 10.0
-bending_modulus = 0.1
-"""
-
-
-def _long_axis_angle(coeffs, p):
-    """Angle in the shear (x, z) plane of the longest principal axis, in (-pi/2, pi/2]."""
-    X = Surface(coeffs, p).points()[0]
-    X = X - X.mean(axis=0)
-    w, v = np.linalg.eigh(X.T @ X)
-    a = v[:, -1]
-    return float(np.arctan2(a[2], a[0]) if a[0] >= 0 else np.arctan2(-a[2], -a[0]))
 
 
 def test_viscosity_contrast_10_in_shear():
@@ -395,22 +292,6 @@ bending_modulus = 0.1
 
 
 # ------------------------------------------------------------------ failure paths
-ONE = """
-title = "one"
-[flow]
-type = "shear"
-rate = 1.0
-[discretization]
-p = 6
-[time]
-horizon = 0.5
-dt = 0.05
-[output]
-every = 0.1
-[[vesicle]]
-shape = "oblate"
-reduced_volume = 0.9
-"""
 
 
 def _fail_on(monkeypatch, calls, kind):

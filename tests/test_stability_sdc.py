@@ -15,9 +15,9 @@ from vesflow.errors import ConvergenceError
 from vesflow.simulation import Run
 from vesflow.stepper import Stepper
 
-from . import harness
-from .test_stability import (BICONCAVE, CROWD, LAMBDA10, ONE, SHEAR, Recorder, _long_axis_angle,
-                             invariants, simulate)
+from tests import harness
+from tests.harness import (BICONCAVE, CROWD, LAMBDA10, ONE, SHEAR, AngleRecorder as Recorder, _long_axis_angle,
+                           invariants, simulate_angles as simulate)
 
 pytestmark = pytest.mark.stability
 SDC = {"-ts_type": "sdc"}

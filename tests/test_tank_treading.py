@@ -8,7 +8,7 @@ import pytest
 from vesflow import shapes, sph
 from vesflow.surface import Surface
 
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+from tests.harness import ROOT  # noqa: E402
 
 
 def _load():

@@ -14,7 +14,7 @@ import h5py
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.harness import ROOT  # noqa: E402
 VESFLOW = [sys.executable, "-m", "vesflow"]
 ENV = dict(os.environ, OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
 
@@ -256,8 +256,7 @@ def test_restart_errors_are_one_line(tmp_path):
 
 
 def test_writer_checkpoint_every_callbacks_and_frame_at_the_same_time(tmp_path):
-    sys.path.insert(0, str(ROOT / "tests"))
-    from test_io import synthetic_frames
+    from tests.harness import synthetic_frames
     from vesflow.io import OutputWriter, read_checkpoint, read_output
     frames = synthetic_frames(n_frames=6)                       # t = 0, 0.5, ..., 2.5
     seen = []

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
-# Set up everything vesflow needs, idempotently (see ../README.md and docs/setup.md).
+# Set up everything vesflow needs, idempotently (README.md, "Two commands").
 #
 # PETSc is built from PyPI sources once into an environment at a FIXED path outside the
 # clone (pip's cached PETSc wheels remember the venv that built them, so a venv inside a
-# temporary clone would poison the cache).  The clone's .venv is a symlink to it, and
-# vesflow itself is installed into it in editable mode from this clone.
+# temporary clone would poison the cache), shared by every clone on the machine.  The clone's
+# .venv is its own small venv layered on it (tools/layered_venv.sh), with this clone installed
+# into it in editable mode: two clones on one machine each run their own code.
 set -euo pipefail
 
 PETSC_VERSION="${PETSC_VERSION:-3.26.1}"
@@ -55,17 +56,33 @@ if [ "$(cat "$ENV_DIR/.req-hash" 2>/dev/null)" != "$req_hash" ]; then
   echo "$req_hash" > "$ENV_DIR/.req-hash"
 fi
 
-# 4. The clone's .venv and an editable install of this clone (builds the Cython kernels).
-if [ -L "$ROOT/.venv" ] || [ ! -e "$ROOT/.venv" ]; then
-  ln -sfn "$ENV_DIR" "$ROOT/.venv"
+# 4. The clone's own .venv, layered on the shared environment, and an editable install of
+#    this clone into it (builds the Cython kernels in place).
+VENV="$ROOT/.venv"
+if [ -L "$VENV" ]; then
+  say "replacing the link $VENV -> $(readlink "$VENV") by a venv of this clone"
+  rm -f "$VENV"                        # the link only, never what it points to
+fi
+if [ -e "$VENV" ] && [ "$(cat "$VENV/.shared-env" 2>/dev/null)" != "$ENV_DIR" ]; then
+  if [ ! -f "$VENV/.shared-env" ]; then
+    say "error: $VENV exists and was not made by tools/setup_env.sh; move it away and run again"
+    exit 2
+  fi
+  say "$VENV was layered on $(cat "$VENV/.shared-env"): making it again on $ENV_DIR"
+  rm -rf "$VENV"
+fi
+if [ ! -e "$VENV" ]; then
+  say "creating $VENV (layered on $ENV_DIR)"
+  "$ROOT/tools/layered_venv.sh" "$VENV" "$ENV_DIR"
 fi
 src_hash="$(cat "$ROOT"/setup.py "$ROOT"/pyproject.toml "$ROOT"/vesflow/_kernels/*.pyx "$ROOT"/vesflow/_kernels/*.h 2>/dev/null | sha256sum | cut -c1-16)"
 stamp="$ROOT/build/.kernels-$src_hash"
-where="$(cd / && "$ENV_DIR/bin/python" -c 'import vesflow, os; print(os.path.dirname(os.path.dirname(vesflow.__file__)))' 2>/dev/null || true)"  # from /: not the cwd copy
+# from / and without PYTHONPATH: where the .venv's python finds vesflow by itself
+where="$(cd / && env -u PYTHONPATH "$VENV/bin/python" -c 'import vesflow, os; print(os.path.dirname(os.path.dirname(vesflow.__file__)))' 2>/dev/null || true)"
 if [ "$where" != "$ROOT" ] || [ ! -f "$stamp" ]; then
-  say "building the kernels and installing vesflow from $ROOT"
-  (cd "$ROOT" && PATH="$ENV_DIR/bin:$PATH" "$ENV_DIR/bin/pip" install -q --no-build-isolation --no-deps -e .)
-  (cd "$ROOT" && PATH="$ENV_DIR/bin:$PATH" "$ENV_DIR/bin/python" setup.py -q build_ext --inplace --force >/dev/null)  # --force: a changed flag or header rebuilds
+  say "building the kernels and installing vesflow from $ROOT into $VENV"
+  (cd "$ROOT" && env -u PYTHONPATH PATH="$VENV/bin:$PATH" "$VENV/bin/python" -m pip install -q --no-build-isolation --no-deps -e .)
+  (cd "$ROOT" && env -u PYTHONPATH PATH="$VENV/bin:$PATH" "$VENV/bin/python" setup.py -q build_ext --inplace >/dev/null)
   mkdir -p "$ROOT/build" && rm -f "$ROOT"/build/.kernels-* && touch "$stamp"
 fi
-say "ready: $ROOT/.venv -> $ENV_DIR"
+say "ready: $VENV (vesflow from $ROOT; PETSc, petsc4py and the other packages from $ENV_DIR)"

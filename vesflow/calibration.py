@@ -75,7 +75,7 @@ MEASURED = {
     "direct_s_per_pair": "two vesicles at p = 6 .. 16: 1.37-1.47 ns (benchmarks/cost_model.py)",
     "fmm_s_per_point": "N = 64 and 128 at p = 16, q = 32 (benchmarks/far_field.py --eps 1e-6 / 1e-8 / 1e-10)",
     "ewald": "free-space N = 32 / 64 / 128 and periodic N = 64 / 125 / 128 / 512, p = 16, tol 1e-6, "
-             "at 1-4 cutoffs each (benchmarks/ewald_split.py); totals within 15 % at the chosen cutoff",
+             "at 1-4 cutoffs each (experiments/ewald_split.py); totals within 15 % at the chosen cutoff",
 }
 
 

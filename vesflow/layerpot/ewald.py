@@ -74,7 +74,7 @@ PREFACTOR_DOUBLE = 1.5
 PREFACTOR_SINGLE = 0.5
 # NUFFT accuracy requested, relative to tol: with tol itself the error stays below 0.25 tol at
 # 1e-4 .. 1e-10, free and periodic, single and double layer (2 tol: 0.30, 5 tol: 1.02 tol;
-# benchmarks/nufft_eps_margin.py, docs/explanation/far_field.md, "Accuracy of the Ewald sum"; 0.5 before)
+# experiments/nufft_eps_margin.py, docs/explanation/far_field.md, "Accuracy of the Ewald sum"; 0.5 before)
 NUFFT_EPS_FACTOR = 1.0
 # weights of the cutoff rule (choose_params: the cutoff of least modelled cost), in the units of
 # CPU seconds of one thread: real space per (target, source) pair inside the cutoff (the estimate
@@ -82,7 +82,7 @@ NUFFT_EPS_FACTOR = 1.0
 # NUFFT spreading and interpolation per point per transform per kernel width cubed; FFT per
 # fine-grid point (3.4 per mode) per transform per log2(grid), times (grid / 1e7)^fft_growth;
 # k-space multiplication per mode per transform.  Frozen: they are the development machine's
-# figures (benchmarks/ewald_split.py) and part of the method, so that the cutoff, and with it
+# figures (experiments/ewald_split.py) and part of the method, so that the cutoff, and with it
 # the result, is the same on every machine; this machine's measured figures are
 # vesflow.calibration's, which only `vesflow check`'s predictions read
 # (docs/explanation/calibration.md)
@@ -299,7 +299,7 @@ def choose_params(tol, points, period=None, nsrc=None, ntrg=None, threads=1, nco
 def make_params(tol, xi, rc, points, period=None, double_layer=True):
     """Parameters with a GIVEN splitting ``xi`` and cutoff ``rc`` (the grid from ``tol``; the
     stresslet's error prefactor unless ``double_layer`` is False): for tests of the
-    independence of the result on xi and for benchmarks/ewald_split.py."""
+    independence of the result on xi and for experiments/ewald_split.py."""
     lt = math.log(1.0 / tol)
     kmax = 2.0 * xi * _exponents(lt, double_layer)[1]
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)

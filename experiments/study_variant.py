@@ -1,13 +1,13 @@
 """One accuracy-cost case with extra run options, its error against a cached reference case.
 
-    PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/study_variant.py REF.json P TOL SCHEME [-opt=value ...]
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.study_variant REF.json P TOL SCHEME [-opt=value ...]
 
 REF.json: a case file of `vesflow study accuracy-cost` (OUT/cases/*.json); SCHEME as in the study
 (euler, sdc, sdc-radau4x2, ...).  Prints the error (vesflow.study.position_error), solves,
 accepted and rejected steps and CPU seconds.  Used for the sdc safety-factor and quadrature
 comparison of docs/explanation/accuracy_cost.md, e.g.
 
-    ... benchmarks/study_variant.py /tmp/p8/cases/<hash>_p8_tol0.0001_R0_sdc.json 8 1e-2 sdc-radau3 -ves_adapt_beta=0.75
+    ... -m experiments.study_variant /tmp/p8/cases/<hash>_p8_tol0.0001_R0_sdc.json 8 1e-2 sdc-radau3 -ves_adapt_beta=0.75
 """
 import json
 import sys

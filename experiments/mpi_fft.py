@@ -19,8 +19,8 @@ transforms per evaluation (complex; vesflow packs two real components into one):
 
 Both paths are checked to give the same transform (printed: max relative difference).
 
-    OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python benchmarks/mpi_fft.py
-    OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python benchmarks/mpi_fft.py --modes 64 146 196
+    OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python -m experiments.mpi_fft
+    OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python -m experiments.mpi_fft --modes 64 146 196
 
 Results: docs/explanation/parallel.md, "Design: replicated state, distributed work".
 """

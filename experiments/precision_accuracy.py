@@ -6,14 +6,12 @@ variant: the final centroid difference relative to the vesicle length (as the st
 errors, max over vesicles), GMRES iterations per solve, accepted / rejected steps, the bytes of
 the self operators and the wall time (noisy on a shared machine).
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/precision_accuracy.py --T 1 --rtol 1e-8
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.precision_accuracy --T 1 --rtol 1e-8
 """
 import argparse
 import os
-import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402
 early_environment()
 

@@ -3,13 +3,12 @@
 prints per variant (dd, sd = self single, ds = pc single, ss = both) the GMRES iterations and the
 velocity's largest difference from double's relative to its largest value.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/precision_one_solve.py            # vesflow's KSP
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/precision_one_solve.py gmres      # -ksp_type gmres
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.precision_one_solve            # vesflow's KSP
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.precision_one_solve gmres      # -ksp_type gmres
 """
 import os
 import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402
 early_environment()
 

@@ -1,6 +1,6 @@
 """One sdc step of the accuracy-cost scene against a fine solution of the same step (issue 18).
 
-    PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sdc_local_error.py \
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.sdc_local_error \
         [--p 8] [--t0 7] [--dts 0.125,0.25,0.5,1] [--sweeps 1,2,3,5,8] [--quadrature lobatto,radau]
 
 The state at t0 comes from fixed sdc steps of 0.25 (runs/accuracy_cost.toml, no output).  From

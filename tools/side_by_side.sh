@@ -5,10 +5,10 @@
 # Prints one line per run: the tree, solves, GMRES iterations per solve, process CPU seconds and
 # the final centroids.  One thread each.
 #
-#   benchmarks/side_by_side.sh OLD_TREE NEW_TREE P TOL      e.g.
+#   tools/side_by_side.sh OLD_TREE NEW_TREE P TOL      e.g.
 #   git worktree add /tmp/old 171b0a2 && (cd /tmp/old && ln -s $PWD/.venv . && \
 #       .venv/bin/python setup.py -q build_ext --inplace)
-#   benchmarks/side_by_side.sh /tmp/old . 8 0.04
+#   tools/side_by_side.sh /tmp/old . 8 0.04
 set -euo pipefail
 OLD=$(cd "$1" && pwd); NEW=$(cd "$2" && pwd); P=$3; TOL=$4
 HERE=$(cd "$(dirname "$0")/.." && pwd)

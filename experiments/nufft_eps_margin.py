@@ -12,19 +12,15 @@ NUFFT at 1e-14 (other xi, rc and grid).  Single layer: the parameters of a singl
 double layer: the stresslet with the parameters of both layers.  Printed: max |u - ref| /
 max |ref| as a fraction of tol, per factor.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/nufft_eps_margin.py
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/nufft_eps_margin.py --tols 1e-6 --factors 0.5 1 2 5 10
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.nufft_eps_margin
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.nufft_eps_margin --tols 1e-6 --factors 0.5 1 2 5 10
 """
 import argparse
-import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from far_field import scene  # noqa: E402
+from benchmarks.far_field import scene  # noqa: E402
 from vesflow._kernels import stokes  # noqa: E402
 from vesflow.layerpot import ewald  # noqa: E402
 

@@ -2,7 +2,7 @@
 its own vesicles' and the other ranks' within its near zone (vesflow.parallel.Halo), and the
 peak of the set-up plus one application, against a layout that gathers every surface.
 
-    OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python benchmarks/mpi_surface_memory.py --nves 64 --p 16
+    OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python -m experiments.mpi_surface_memory --nves 64 --p 16
 
 The scene is benchmarks/mpi_scaling.py's lattice (spacing 2.2, oblate v = 0.65, radius 0.764),
 or with --spacing a denser or sparser one.  Per rank (rank 0 prints): vesicles owned, held
@@ -14,12 +14,10 @@ with PYTHONPATH pointing at a tree without the halo (every surface gathered) for
 comparison: `known` is then every vesicle.
 """
 import argparse
-import os
 import sys
 import time
 import tracemalloc
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 from vesflow.threads import early_environment  # noqa: E402
 early_environment()
 

@@ -2,19 +2,16 @@
 sheared past each other, centres (-dx, 0, dz), (dx, 0, -dz); prints the outcome, the collision
 rejections and the min gap / contacts at every frame.
 
-    OMP_NUM_THREADS=1 .venv/bin/python runs/robustness.py --p 6 --dz 0.45 --T 6 -ves_reparam off
-    OMP_NUM_THREADS=1 .venv/bin/python runs/robustness.py --p 8 --dz 0.45 --T 4.6 --R 0.04
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.robustness_pair --p 6 --dz 0.45 --T 6 -ves_reparam off
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.robustness_pair --p 8 --dz 0.45 --T 4.6 --R 0.04
 """
 import argparse
-import os
-import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 import petsc4py  # noqa: E402
 
 petsc4py.init([])
-from tests.test_robustness import _pair, _run_pair, rejections  # noqa: E402
+from tests.harness import rejections, robustness_pair as _pair, run_pair as _run_pair  # noqa: E402
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--p", type=int, default=6)

@@ -1,8 +1,8 @@
 """Memory per rank of one step, modelled (issue 19): the paper's Taylor-Green suspension,
 1408 vesicles at p = 16, on 1, 2, 16 and 64 ranks, and what makes it fit in 24 GB.
 
-    .venv/bin/python benchmarks/mpi_memory.py                      # the table of docs/explanation/parallel.md
-    .venv/bin/python benchmarks/mpi_memory.py --ranks 1 2 4 16 64
+    .venv/bin/python -m experiments.mpi_memory                      # the table of docs/explanation/parallel.md
+    .venv/bin/python -m experiments.mpi_memory --ranks 1 2 4 16 64
 
 Per rank = base + (vesicles it owns) x owned + (surfaces it holds) x surface
            + (all vesicles) x (replicated - surface) + Ewald grid.
@@ -14,7 +14,7 @@ operator 3C x 3C, preconditioner parts A0 4C x 4C and S Mb 3C x 3C, LU factors 4
 kept dt) plus the rest, measured: the peak RSS of benchmarks/mpi_scaling.py at 8 and 64
 vesicles on 1 rank and 64 on 2 (--measured, GB) fixes the base and the two slopes.
 `surface` (--surface-mb, 0.44 MB at p = 16) is the part of `replicated` that the surfaces
-were, measured by benchmarks/mpi_surface_memory.py (4 ranks, 64 vesicles: the set-up peak of
+were, measured by experiments/mpi_surface_memory.py (4 ranks, 64 vesicles: the set-up peak of
 a rank holding all 64 surfaces against one holding 36, 12.4 MB / 28); since the near-zone
 exchange (vesflow.parallel.Halo) a rank holds only its own surfaces and its halo's, counted
 for the scene's initial vesicles and the run's Morton partition (`held_surfaces`, --scene).
@@ -27,14 +27,12 @@ arrays in float32: the owned part falls by half their bytes (counted from the sh
 per vesicle with both at p = 16 and one LU; measured at 8 vesicles: peak RSS 0.50 -> 0.38 GB,
 15 MB per vesicle).  The last table gives the fewest ranks of 24 GB each for every combination.
 
-    .venv/bin/python benchmarks/mpi_memory.py --fit-gb 24
+    .venv/bin/python -m experiments.mpi_memory --fit-gb 24
 """
 import argparse
 import math
 import os
-import sys
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 GB = 2.0 ** 30
 

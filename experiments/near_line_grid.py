@@ -19,17 +19,14 @@ target itself always keeps the q grid (it cancels the far field's value).
   --double); error = max over near targets of the interaction velocity against q = 96,
   relative to its largest value.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/near_line_grid.py --case identity
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/near_line_grid.py --case lattice --spacing 2.3 --double
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/near_line_grid.py --case lattice --biconcave-gap 0.03
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.near_line_grid --case identity
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.near_line_grid --case lattice --spacing 2.3 --double
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.near_line_grid --case lattice --biconcave-gap 0.03
 """
 import argparse
-import os
-import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from vesflow import shapes, sph  # noqa: E402
 from vesflow._kernels import stokes  # noqa: E402

@@ -9,21 +9,18 @@ multiplication, type-2 NUFFT; then the counts the cost model uses (pairs inside 
 uniform-density estimate, with --own smooth minus the own ones of ewald.own_pairs_inside; own
 pairs; NUFFT points, modes) and the constants they imply.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald_split.py --n 64 512 --tol 1e-6
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/ewald_split.py --n 512 --rc auto 1.2 1.5   # given cutoffs
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.ewald_split --n 64 512 --tol 1e-6
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.ewald_split --n 512 --rc auto 1.2 1.5   # given cutoffs
 """
 import argparse
 import math
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from far_field import scene  # noqa: E402
+from benchmarks.far_field import scene  # noqa: E402
 from vesflow.layerpot import ewald  # noqa: E402
 
 

@@ -10,21 +10,19 @@ largest velocity (`err/|u|`; also the 99th percentile of the pointwise differenc
 i.e. apply minus the self part: `err/|u_int|`).  The tol columns include the Ewald error of
 both applies (~0.03-0.25 tol, docs/explanation/far_field.md), so differences below ~tol are not q's.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/q_accuracy.py --n 64
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/q_accuracy.py --n 64 --spacing 2.3 --ref 96 --tols 1e-8
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/q_accuracy.py --n 27 --ewald-vs-direct --qs 24 28 32 40 48 64
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.q_accuracy --n 64
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.q_accuracy --n 64 --spacing 2.3 --ref 96 --tols 1e-8
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.q_accuracy --n 27 --ewald-vs-direct --qs 24 28 32 40 48 64
 
 --ewald-vs-direct: the same scene in free space, at each q the Ewald far field (tol --tols[0])
 against the direct sum, same sources, same near corrections (isolates the far-field backend).
 """
 import argparse
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from vesflow import shapes  # noqa: E402
 from vesflow.layerpot import evaluator  # noqa: E402

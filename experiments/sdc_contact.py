@@ -1,6 +1,6 @@
 """Why -ts_type sdc stops in the no-repulsion pair tests of tests/test_robustness.py (issue 18).
 
-    PYTHONPATH=$PWD OMP_NUM_THREADS=1 .venv/bin/python benchmarks/sdc_contact.py [--case detector-0.15]
+    OMP_NUM_THREADS=1 .venv/bin/python -m experiments.sdc_contact [--case detector-0.15]
         [-opt value ...]
 
 Cases (the scenes and options of the tests): detector-0.15, detector-0.22
