@@ -27,8 +27,8 @@ test: setup
 	$(MAKE) --no-print-directory test-mpi
 
 test-mpi:
-	@if ls tests/test_mpi*.py >/dev/null 2>&1; then \
-	  .venv/bin/mpiexec -n 2 $(PYTEST) -q -m mpi -p no:cacheprovider tests/test_mpi*.py || { rc=$$?; [ $$rc -eq 5 ] || exit $$rc; }; \
+	@if ls tests/mpi/test_*.py >/dev/null 2>&1; then \
+	  .venv/bin/mpiexec -n 2 $(PYTEST) -q -m mpi -p no:cacheprovider tests/mpi/test_*.py || { rc=$$?; [ $$rc -eq 5 ] || exit $$rc; }; \
 	fi
 
 test-all: setup

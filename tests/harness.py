@@ -28,7 +28,7 @@ def shared_env():
     """The shared PETSc environment: the one the running venv is layered on (its .shared-env,
     tools/layered_venv.sh), or the running environment itself."""
     mark = Path(sys.prefix) / ".shared-env"
-    return Path(mark.read_text().strip()) if mark.is_file() else Path(sys.prefix)
+    return Path(mark.read_text().strip()) if mark.is_file() else Path(sys.prefix).resolve()
 
 
 def clean_env(**extra):
