@@ -35,9 +35,6 @@ import platform
 import sys
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, ".."))
-sys.path.insert(0, HERE)
 from vesflow.threads import early_environment  # noqa: E402
 early_environment()
 

@@ -4,8 +4,8 @@
         [--schemes euler,sdc] [-opt value ...]
 
 Cases: detector-0.15, detector-0.22, close-pair (the no-repulsion tests of
-tests/test_robustness.py, their scenes and options) and pushed-0.25, pushed-0.3 (default options,
-centres (-1.3, 0, dz), (1.3, 0, -dz), T = 6, frames every 0.5: the pairs tests/test_contacts.py
+tests/stepping/test_robustness.py, their scenes and options) and pushed-0.25, pushed-0.3 (default options,
+centres (-1.3, 0, dz), (1.3, 0, -dz), T = 6, frames every 0.5: the pairs tests/stepping/test_contacts.py
 drives into contact).  One line per scheme: end time, failure, accepted / rejected by reason,
 separated steps (vesflow/contact.py) with their start gaps and shifts, smallest frame gap,
 steps' dt range, CPU seconds.  -ves_contact off gives the behaviour without separation.

@@ -15,12 +15,13 @@ import importlib.util
 import os
 import subprocess
 import sys
+import tempfile
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 # script, quick arguments, MPI ranks (0: run without mpiexec).  Every script of benchmarks/ is
-# here (tests/test_layout.py checks it); one-off studies are in experiments/.
+# here (tests/packaging/test_layout.py checks it); one-off studies are in experiments/.
 SCRIPTS = [
     ("sht_ducc0.py", ["--p", "8", "16", "--batch", "1", "100", "--repeat", "2"], 0),
     ("self_operator.py", ["--degrees", "8", "16", "--setup-ves", "1", "--stream-mb", "0", "--rounds", "3"], 0),
@@ -34,6 +35,9 @@ SCRIPTS = [
     ("mpi_scaling.py", ["--nves", "8", "--p", "6", "--steps", "1"], 2),
     ("sdc_order.py", ["--p", "4", "--case", "prolate", "--dts", "0.1,0.05", "--schemes", "euler,sdc3x2"], 0),
     ("render_movie.py", ["--frames", "60"], 0),
+    ("calibrate.py", ["--degrees", "6", "8", "--repeat", "1", "-o", os.path.join(tempfile.gettempdir(), "vesflow_calibration_quick.json")], 0),
+    ("frame_cost.py", ["--p", "6", "--steps", "5"], 0),
+    ("contacts.py", ["--case", "pushed-0.3", "--schemes", "sdc"], 0),
 ]
 
 

@@ -12,7 +12,7 @@ target itself always keeps the q grid (it cancels the far field's value).
 
 - ``--case identity``: the double layer of the density 1 (lambda = 0 kernel) of one vesicle
   (sphere, ellipsoid 1:1:3, biconcave) at 30 targets at 1e-1, 1e-3, 1e-5 R outside: the exact
-  value is 0 (docs/explanation/validation.md; tests/test_layerpot.py::test_double_layer_identity_near_targets).
+  value is 0 (docs/explanation/validation.md; tests/layerpot/test_layerpot.py::test_double_layer_identity_near_targets).
 - ``--case lattice``: 8 vesicles (benchmarks/iteration.py's lattice, free space, direct sum)
   or a biconcave pair at a gap, random densities (smooth: exp(-0.3 k) in the flat index k;
   rough: exp(-0.5 n) in the degree n), single layer (and double, lambda = 0.3, with

@@ -4,7 +4,7 @@ NUFFT eps = factor * tol), free space and periodic, single and double layer
 
 Scenes: ``spheres``, the unit spheres of benchmarks/far_field.py (--n of them, p = 16 targets,
 q = 32 sources, area-weighted random densities); ``clusters``, the random point clusters of
-tests/test_ewald.py (20 clusters of 50 sources and 15 targets, radius 0.3, in a box of side 3,
+tests/layerpot/test_ewald.py (20 clusters of 50 sources and 15 targets, radius 0.3, in a box of side 3,
 plus 10 targets of no vesicle).  Free space: against the direct sum.  Periodic (``spheres``:
 period 2.5 ceil(N^(1/3)); ``clusters``: period 3): against the Ewald sum at tol 1e-13 with the
 NUFFT at 1e-14 (other xi, rc and grid).  Single layer: the parameters of a single layer alone
@@ -26,7 +26,7 @@ from vesflow.layerpot import ewald  # noqa: E402
 
 
 def clusters(rng, nclus=20, per=50, L=3.0, radius=0.3, ntrg_per=15, free_trg=10):
-    """As tests/test_ewald.py's clusters()."""
+    """As tests/layerpot/test_ewald.py's clusters()."""
     c = rng.uniform(0, L, (nclus, 3))
     src = (c[:, None, :] + radius * rng.uniform(-1, 1, (nclus, per, 3))).reshape(-1, 3)
     trg = (c[:, None, :] + radius * rng.uniform(-1, 1, (nclus, ntrg_per, 3))).reshape(-1, 3)

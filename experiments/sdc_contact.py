@@ -1,4 +1,4 @@
-"""Why -ts_type sdc stops in the no-repulsion pair tests of tests/test_robustness.py (issue 18).
+"""Why -ts_type sdc stops in the no-repulsion pair tests of tests/stepping/test_robustness.py (issue 18).
 
     OMP_NUM_THREADS=1 .venv/bin/python -m experiments.sdc_contact [--case detector-0.15]
         [-opt value ...]

@@ -16,7 +16,7 @@ dt < -ves_dt_min ends the run.  A candidate that touches is therefore treated by
   closest point (Stokes mobility ~ 1 / R: the pair's mean position is kept for equal radii).
 
 Only steps that the collision check would have rejected are changed: a run without such a
-step is bit-identical with and without it (tests/test_contacts.py).
+step is bit-identical with and without it (tests/stepping/test_contacts.py).
 """
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ coefficients, component-major) then tension sigma_i (C).  For every vesicle
 with alpha_i = (1 + lambda_i)/2 and D_ij the (1 - lambda_j) double layer whose kernel gives
 D[1] = 1 inside (docs/explanation/method.md, section 4).  The sign of D is that of
 docs/explanation/method.md, section 6: with the opposite one a spherical vesicle would sediment at
-U / lambda instead of Stokes' velocity U for every lambda (tests/test_dynamics.py pins this).  Forces are formed on the upsampled q-grid and filtered to
+U / lambda instead of Stokes' velocity U for every lambda (tests/stepping/test_dynamics.py pins this).  Forces are formed on the upsampled q-grid and filtered to
 degree p (Galerkin).  With explicit coupling only j = i is kept on the left.
 """
 from __future__ import annotations

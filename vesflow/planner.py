@@ -1,7 +1,7 @@
 """Ask for an accuracy, get the cheapest settings: `vesflow plan SCENE.toml --error E [--budget S]`.
 
 The error of a run at the horizon T (the accuracy-cost study's measure: max over vesicles of the
-centroid's distance from a converged solution's, over the vesicle's length; docs/accuracy_cost.md)
+centroid's distance from a converged solution's, over the vesicle's length; docs/explanation/accuracy_cost.md)
 is modelled as the sum of a spatial and a time part (docs/explanation/planner.md):
 
     e(p, scheme, E/T) = (T / T_fit) [f_s e_s(p) + f_t e_t(scheme, E/T)] + e_far(tol_far)
@@ -47,7 +47,7 @@ SCHEMES = ("euler", "sdc")
 P_CHOICES = tuple(range(8, 17))                    # the study's degrees: outside them the spatial model is not fitted
 TOL_GRID = tuple(float(f"{1e-3 * 2 ** (k / 2):.3g}") for k in range(0, 13))   # E/T 1e-3 ... 6.4e-2, sqrt(2) apart
 FAR_TOLS = (1e-4, 1e-5, 1e-6, 1e-7, 1e-8)          # -ves_far_tol (fmm / ewald only)
-SINGLE_MIN_ERROR = 1e-6                            # float32 self operators: 1.8e-10 at T = 1 (docs/parallel.md)
+SINGLE_MIN_ERROR = 1e-6                            # float32 self operators: 1.8e-10 at T = 1 (docs/explanation/parallel.md)
 
 
 @dataclass(frozen=True)

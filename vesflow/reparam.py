@@ -71,7 +71,7 @@ def spectral_energy(coeffs, p, attenuation="n2"):
 def truncation_estimate(coeffs, p):
     """Spectral estimate of the truncation error of degree-p surfaces: the norm of their
     degree-p coefficients, (N, 3, C) -> (N,).  For the distorted prolate of
-    tests/test_robustness.py it is 1.7x / 2.1x / 2.4x the measured distance of the interpolant to
+    tests/stepping/test_robustness.py it is 1.7x / 2.1x / 2.4x the measured distance of the interpolant to
     the exact shape at p = 8 / 12 / 16."""
     ns, _, _ = sph.index_tables(p)
     c = np.asarray(coeffs, dtype=float)

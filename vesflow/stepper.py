@@ -342,7 +342,7 @@ def sphere_constraints(surface, op, lock=True):
 
     Lock (lock=True).  A sphere of fixed area and volume cannot deform; the linearized
     constraint div u = 0 lets it (its normal velocity of degree 2 in a strain is
-    60 / (23 lambda + 32) a n.E.n, tests/test_dynamics.py), and that instantaneous motion
+    60 / (23 lambda + 32) a n.E.n, tests/stepping/test_dynamics.py), and that instantaneous motion
     changes its stresslet to (80 - 115 lambda) / (23 lambda + 32) times a rigid sphere's -5
     (0.13 of it at lambda = 1): two spheres sedimenting along their line of centres fall 1.8%
     (3 radii apart) and 2.8% (2.5) faster than rigid spheres.  The locked limit of a

@@ -360,7 +360,7 @@ def test_a_bad_option_in_an_options_file_is_exit_2_and_one_line(tmp_path, text, 
 
 def test_more_mpi_processes_than_vesicles_is_refused_with_one_line(tmp_path):
     """Each rank owns at least one vesicle (vesflow.parallel); one vesicle on two ranks: exit 2,
-    one line (from rank 0 only), no output file.  Runs on two ranks: tests/test_mpi_runs.py."""
+    one line (from rank 0 only), no output file.  Runs on two ranks: tests/mpi/test_mpi_runs.py."""
     mpiexec = Path(sys.executable).parent / "mpiexec"
     if not mpiexec.exists():
         pytest.skip("no mpiexec in the environment")

@@ -6,7 +6,7 @@ frame), area and volume drift, mesh quality (the reparameterization energy E of 
 relative to its start), GMRES converged on every accepted step (a failed solve is a
 rejection, counted by reason), no vesicle lost (all centroids finite and in the domain).
 The fast cases run in `make test`, the long ones (`slow`) in `make test-all`.  The runs use
--ts_type euler (EULER below); tests/test_stability_sdc.py has the same cases with sdc, the default.
+-ts_type euler (EULER below); tests/stepping/test_stability_sdc.py has the same cases with sdc, the default.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ pytestmark = pytest.mark.stability
 
 
 # This suite runs with -ts_type euler, the scheme its figures (step, rejection and solve counts,
-# measured gaps and angles) were computed with; tests/test_stability_sdc.py runs its hard cases
+# measured gaps and angles) were computed with; tests/stepping/test_stability_sdc.py runs its hard cases
 # with sdc, the default.  The fast sphere sweep runs with the default.
 EULER = {"-ts_type": "euler"}
 
@@ -182,7 +182,7 @@ bending_modulus = 0.1
 
 def test_sphere_in_extensional_flow_runs_to_its_horizon():
     """Issue 15: a sphere cannot deform (fixed area and volume) but the linearized step deforms
-    it at O(dt) (u_n = 12/11 n.E.n, tests/test_dynamics.py); the raw step-doubling difference was
+    it at O(dt) (u_n = 12/11 n.E.n, tests/stepping/test_dynamics.py); the raw step-doubling difference was
     O(dt) and the run stopped at t = 0 (before: 16 rejections, ksp and error estimate).  The error
     estimate now compares the shapes (normal part) after the area/volume correction, which for a
     sphere is the sphere of volume V0; the sphere is also locked (stepper.sphere_constraints):
@@ -297,7 +297,7 @@ bending_modulus = 0.1
 def _fail_on(monkeypatch, calls, kind):
     """Make Stepper.step fail (GMRES failure or NaN) on the given call numbers (a set, or
     'from:k' for every call from k on).  Stepper.step is euler's step: the tests that use it
-    are pinned to -ts_type euler (sdc's solves: tests/test_stability_sdc.py)."""
+    are pinned to -ts_type euler (sdc's solves: tests/stepping/test_stability_sdc.py)."""
     real = Stepper.step
     count = {"n": 0}
 

@@ -1,4 +1,4 @@
-"""The stability suite's hard cases (tests/test_stability.py) with -ts_type sdc (issue 18).
+"""The stability suite's hard cases (tests/stepping/test_stability.py) with -ts_type sdc (issue 18).
 
 Same scenes and the same invariants (no intersection, area/volume drift, mesh quality, GMRES
 converged on every accepted step, no vesicle lost); the time integrator is SDC (3 Gauss-Lobatto

@@ -13,7 +13,7 @@
  * - erfcx(z), z >= 0: (1 + z) erfcx(z) is a smooth function of t = (z - K)/(z + K) on [-1, 1]
  *   (Weideman 1994's variable), interpolated at 21 Chebyshev points (K = 3.5; relative error
  *   of erfcx below 6e-15 for every z >= 0, measured against scipy.special.erfcx; the
- *   coefficients below are its monomial form, tests/test_ewald.py checks the result).
+ *   coefficients below are its monomial form, tests/layerpot/test_ewald.py checks the result).
  * One square root and one division per pair.  Results agree with libm's erfc/exp to ~1e-14
  * relative; the summation order differs from a scalar loop (vector lanes, FMA). */
 #ifndef VESFLOW_EWALDSUM_H

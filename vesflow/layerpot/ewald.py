@@ -66,7 +66,7 @@ from .ewald_fourier import NUFFT_LIBS, Nufft, kernel_psi, kvectors, sym6
 from .groups import group_by_vesicle
 
 # margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
-# relative error stays below tol for 1e-4 .. 1e-10 (tests/test_ewald.py)
+# relative error stays below tol for 1e-4 .. 1e-10 (tests/layerpot/test_ewald.py)
 C_REAL = 0.0
 C_FOURIER = 0.0
 C_WINDOW = 2.0

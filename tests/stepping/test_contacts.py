@@ -12,7 +12,7 @@ import pytest
 from vesflow import collision, contact, shapes
 from vesflow.surface import Surface
 
-from . import harness
+from tests import harness
 
 P = 6
 
@@ -98,7 +98,7 @@ def _pair_run(dz, T, every, scheme, **options):
 
 
 def test_a_run_whose_collisions_are_overshoots_is_bit_identical_with_and_without_it():
-    """The detector case of tests/test_robustness.py (dz = 0.15, E/T = 0.15) with euler: its
+    """The detector case of tests/stepping/test_robustness.py (dz = 0.15, E/T = 0.15) with euler: its
     collision rejections start at gaps 2.4e-2 and 1.3e-2, above the contact zone (3.9e-3), so
     the separation never acts and the run is the same bits with -ves_contact on and off."""
     runs = {}

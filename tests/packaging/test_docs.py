@@ -7,7 +7,7 @@ import pytest
 
 from vesflow import cli, options
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 DOCS = os.path.join(ROOT, "docs")
 STUDY = os.path.join(DOCS, "study")          # generated result folders, not pages
 

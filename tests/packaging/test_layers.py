@@ -18,7 +18,7 @@ import re
 
 import pytest
 
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
 PACKAGE = "vesflow"
 
 # Lowest first: a module may import modules of its own layer and of the layers before it.  A
@@ -169,7 +169,7 @@ def graph():
 def test_every_module_has_a_layer(graph):
     mods, known, _ = graph
     missing = sorted(m for m in known if layer_of(m) is None)
-    assert not missing, f"modules in no layer (place them in tests/test_layers.py LAYERS): {missing}"
+    assert not missing, f"modules in no layer (place them in tests/packaging/test_layers.py LAYERS): {missing}"
 
 
 def test_imports_go_downwards(graph):

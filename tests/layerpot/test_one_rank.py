@@ -1,6 +1,6 @@
 """A serial run is the one-rank case of the vesicle partition (vesflow.parallel.Partition.single):
 its collectives return their argument, its halo holds the rank's own vesicles as they are, and
-the layer potentials take the same code as over MPI ranks (tests/test_mpi.py for several)."""
+the layer potentials take the same code as over MPI ranks (tests/mpi/test_mpi.py for several)."""
 import numpy as np
 import pytest
 

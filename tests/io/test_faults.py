@@ -19,9 +19,9 @@ import pytest
 from vesflow.errors import OutputError, SceneError
 from vesflow.io import OutputWriter, journal, read_checkpoint, read_output
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-from test_io import synthetic_frames  # noqa: E402
+from tests.harness import synthetic_frames
+
+ROOT = Path(__file__).resolve().parents[2]
 
 PY = sys.executable
 VESFLOW = [PY, "-m", "vesflow"]
