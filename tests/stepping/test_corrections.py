@@ -214,8 +214,8 @@ def test_reparameterization_budget_is_per_unit_time(monkeypatch):
     text = ('title = "one oblate"\n[discretization]\np = 8\n[time]\nhorizon = 1.0\ndt = 0.1\n'
             '[[vesicle]]\nshape = "oblate"\nreduced_volume = 0.85\nbending_modulus = 0.01\n')
     sc = S.parse_scene(text)
-    assert O.read_options(O.dict_getter({})).reparam_rate == 0.0
-    assert O.read_options(O.dict_getter({"-ts_type": "sdc"})).reparam_rate == 1000.0
+    assert O.read_options(O.dict_getter({"-ts_type": "euler"})).reparam_rate == 0.0
+    assert O.read_options(O.dict_getter({})).reparam_rate == 1000.0          # sdc, the default
     run = sim.Run(sc, O.read_options(O.dict_getter({"-ves_reparam_rate": 1000}), sc))
     bad = badly_parameterized(0.15, p=8)[None]
     seen = []
