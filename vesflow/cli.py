@@ -376,6 +376,8 @@ def _run(rest, stop):
         # the last accepted state (also under -ves_checkpoint_every): continue it with other options
         if run is not None and writer.last_checkpoint_time != run.t:
             writer.write_checkpoint(run.checkpoint(), force=True)
+        if getattr(writer, "failure", None) is not None:    # it could not be saved: say why
+            raise writer.failure from None
         raise
     except (SceneError, SettingsError, OutputError):
         raise

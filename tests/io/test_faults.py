@@ -206,10 +206,12 @@ def test_sigkill_at_20_random_moments_each_followed_by_restart(reference, tmp_pa
 # Signals: stop at the next step boundary, a checkpoint, one line, exit 128 + N
 # ------------------------------------------------------------------------------------------
 def _stop_by_signal(signal_reference, tmp_path, sig, launcher=(), target=None):
+    """The signal during step 1 (0.05 -> 0.107): the run stops at t = 0.107, between the frames at
+    0 and 0.15 (later if this process was slow to send it)."""
     out = tmp_path / "stopped.h5"
     proc = popen(["run", signal_reference["scene"], "-o", out] + SIGNAL_OPTS, launcher)
     try:
-        wait_for_step(proc, 1)
+        wait_for_step(proc, 0)
         os.kill(target(proc) if target else proc.pid, sig)
         proc.wait(120)
     finally:
@@ -224,15 +226,18 @@ def _stop_by_signal(signal_reference, tmp_path, sig, launcher=(), target=None):
     assert name == signal.Signals(sig).name and cont == str(out) and t == t_ck
     ck = read_checkpoint(out)
     assert float(ck["time"]) == pytest.approx(float(t), rel=1e-5) and int(ck["n_accepted"]) == int(step)
-    assert 2 <= int(step) < signal_reference["n_steps"]       # after the step the signal came in
+    assert 1 <= int(step) < signal_reference["n_steps"]       # after the step the signal came in
     stopped = read_output(out)
     assert stopped.time[-1] <= float(ck["time"]) + 1e-12
     return out, float(ck["time"])
 
 
 def test_sigterm_stops_at_a_step_boundary_and_restart_gives_the_uninterrupted_run(signal_reference, tmp_path):
-    out, t_ck = _stop_by_signal(signal_reference, tmp_path, signal.SIGTERM)
-    assert min(abs(t_ck - k * 0.15) for k in range(4)) > 1e-6      # between frames: work since the frame kept
+    for attempt in range(3):      # a stop between frames (the work since the frame kept), unless slow
+        out, t_ck = _stop_by_signal(signal_reference, tmp_path / str(attempt), signal.SIGTERM)
+        if min(abs(t_ck - k * 0.15) for k in range(4)) > 1e-6:
+            break
+    assert min(abs(t_ck - k * 0.15) for k in range(4)) > 1e-6, t_ck
     r = vesflow(["run", "--restart", out])
     assert r.returncode == 0, r.stderr
     clean(r.stderr, r.returncode)
@@ -246,25 +251,27 @@ def test_sigusr1_and_sigint_stop_the_same_way(signal_reference, tmp_path, sig):
     _stop_by_signal(signal_reference, tmp_path, sig)
 
 
-def test_a_second_signal_stops_at_once(signal_reference, tmp_path):
-    """Ctrl-C twice: the second ends the run by SIGINT's default action, in the middle of its step
-    (p = 10: a step of seconds); the file keeps its frame and checkpoint at t = 0."""
-    out = tmp_path / "twice.h5"
-    proc = popen(["run", signal_reference["scene"], "-o", out, "-ves_p", "10", "-ts_monitor"])
-    try:
-        wait_for_step(proc, 0)
-        proc.send_signal(signal.SIGINT)
-        time.sleep(0.05)
-        proc.send_signal(signal.SIGINT)
-        proc.wait(120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    err = proc.stderr.read()
-    clean(err, proc.returncode)
-    assert proc.returncode == -signal.SIGINT, (proc.returncode, err)
-    assert one_line(err) == f"vesflow: second SIGINT: stopped at once; --restart {out} continues from the last checkpoint"
-    assert list(read_output(out).time) == [0.0] and float(read_checkpoint(out)["time"]) == 0.0
+SECOND_SIGNAL = """
+import os, signal, sys, time
+from vesflow.signals import StopRequest
+stop = StopRequest().install()
+stop.out = "out.h5"
+os.kill(os.getpid(), signal.SIGINT)
+time.sleep(0.1)                     # the handler has run: the stop is requested
+print("first", stop.received, stop.poll(), stop.signum, flush=True)
+os.kill(os.getpid(), signal.SIGINT)
+time.sleep(5)
+print("still running", flush=True)
+"""
+
+
+def test_a_second_signal_stops_at_once():
+    """Ctrl-C twice: the first requests the stop, the second ends the process by SIGINT's default
+    action at once (a run waiting for the end of a long step)."""
+    r = subprocess.run([PY, "-c", SECOND_SIGNAL], capture_output=True, text=True, timeout=60, env=ENV, cwd=ROOT)
+    assert r.returncode == -signal.SIGINT, (r.returncode, r.stdout, r.stderr)
+    assert r.stdout.split() == ["first", "2", "True", "2"]
+    assert one_line(r.stderr) == "vesflow: second SIGINT: stopped at once; --restart out.h5 continues from the last checkpoint"
 
 
 def _rank1_pid(mpiexec_pid):

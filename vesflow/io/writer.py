@@ -432,9 +432,6 @@ class OutputWriter:
                 d.resize(keep_f, axis=0)
             stt = f["steps/time"][...]
             keep_s = int(np.argmax(stt >= tc - tol)) if np.any(stt >= tc - tol) else len(stt)
-            n_at_ck = f["checkpoint"].attrs.get("_vesflow_n_steps")
-            if n_at_ck is not None:     # the rows written before the checkpoint: also the rejected
-                keep_s = min(int(n_at_ck), len(stt))    # attempts at its time (a stop after a rejection)
             for d in f["steps"].values():
                 d.resize(keep_s, axis=0)
             a = f.attrs
