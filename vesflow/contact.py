@@ -9,14 +9,15 @@ dt < -ves_dt_min ends the run.  A candidate that touches is therefore treated by
 - the step started at a gap g0 >= ZONE h (h = sqrt(A_max / (2 p (p + 1))), the p-grid spacing):
   the step jumped across a gap it should have resolved (an overshoot); rejected, dt halved;
 - g0 < ZONE h: the surfaces are in contact at this resolution; the touching vesicles are moved
-  apart rigidly (and, while the pair stays within ZONE h, any accepted state closer than
-  TARGET h / 2 too: Contacts.keep_apart) (a projection onto g >= 0 like the area/volume correction onto A, V: no change
-  of shape, area, volume or parameterization) until the smallest gap is TARGET h, each of a
-  touching pair (i, j) by the share R_j / (R_i + R_j) of the shift along the normal of the
-  closest point (Stokes mobility ~ 1 / R: the pair's mean position is kept for equal radii).
+  apart rigidly until the smallest gap is TARGET h (a projection onto g >= 0, as the
+  area/volume correction is onto A, V: no change of shape, area, volume or parameterization),
+  each of a touching pair (i, j) by the share R_j / (R_i + R_j) of the shift along the normal
+  of the closest point (Stokes mobility ~ 1 / R: the pair's mean position is kept for equal
+  radii).  While the pair stays within ZONE h, an accepted state closer than TARGET h / 2 is
+  separated too (Contacts.keep_apart).
 
-Only steps that the collision check would have rejected are changed: a run without such a
-step is bit-identical with and without it (tests/stepping/test_contacts.py).
+Nothing changes before a step that starts in contact touches: a run without such a step is
+bit-identical with and without it (tests/stepping/test_contacts.py).
 """
 from __future__ import annotations
 

@@ -280,7 +280,8 @@ def test_collision_detector_rejects_steps_and_run_ends_without_intersection(dz):
     With sdc, the default: dz = 0.15 / 0.22 have 3 / 1 overshoot rejections (t = 2.97, 4.13, 4.81 /
     4.41 at dt = 0.54-0.88), then the pair comes into contact and the steps that start in
     contact are separated (vesflow/contact.py; before, sdc stopped on collision rejections at
-    dt ~ 1e-6, t = 5.88 / 4.98); T = 6, min frame gap 1.5e-3 / 1.5e-3."""
+    dt ~ 1e-6, t = 5.88 / 4.98); T = 6 with 37 / 103 accepted and 17 / 51 rejected steps, min
+    frame gap 1.9e-3 / 1.4e-3."""
     run, rec, failure = _run_pair(harness.pair_scene(1.3, dz, 6, 6.0, every=6.0, dt=0.05),
                                   **{"-ves_adapt_tol": 0.15})
     gaps = [f["min_gap"] for f in rec.frames]
@@ -319,7 +320,9 @@ def test_close_pair_without_repulsion_ends_without_contact():
     Frames every 1: with the steps landing on output times every 0.1 or 0.5 (issue 15) the step
     sequence changes and this pair, at the resolution limit of p = 6, comes into contact near
     t = 5.1-5.4 (exit 3, the last good state saved); every 1 it ends at T = 5.8 without contact,
-    min frame gap 0.023 (measured with the landing steps)."""
+    min frame gap 0.023 (measured with the landing steps).  With sdc, the default (before the
+    contact step it stopped on collision rejections at t = 5.06): T = 5.8, 44 accepted, 14
+    rejected (11 error estimate, 3 GMRES), no collision rejection, min frame gap 5.5e-3."""
     run, rec, failure = _run_pair(harness.pair_scene(1.3, 0.3, 6, 5.8, every=1.0, dt=0.05),
                                   **{"-ves_reparam": "off", "-ves_adapt_tol": 0.05})
     gaps = [f["min_gap"] for f in rec.frames]
