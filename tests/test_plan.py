@@ -152,11 +152,12 @@ def test_run_with_accuracy_plans_says_it_in_one_line_and_stores_the_plan(tmp_pat
     assert len(lines) == 1 and "p = 6" in lines[0] and "predicted error" in lines[0]
     with h5py.File(out, "r") as f:
         plan = json.loads(f.attrs["plan"])
-        resolved = f.attrs["options_resolved"]
-        resolved = resolved.decode() if isinstance(resolved, bytes) else resolved
+        resolved, given = (f.attrs[k].decode() if isinstance(f.attrs[k], bytes) else f.attrs[k]
+                           for k in ("options_resolved", "options"))
     assert plan["error_target"] == 1e-2 and plan["chosen"]["p"] == 6 and plan["predicted_error"] <= 1e-2
     assert f"-ts_type {plan['chosen']['scheme']}" in resolved
-    assert f"-ves_adapt_tol {plan['chosen']['tol']:g}"[:20] in resolved or "-ves_adapt_tol" in resolved
+    assert f"-ves_adapt_tol {plan['chosen']['tol']:g}" in resolved
+    assert given.startswith(plan["options"]) and given.endswith("-ves_p 6")     # the plan's, then ours
 
 
 def test_pilot_factors_are_measured_over_predicted(one, monkeypatch):
