@@ -10,7 +10,7 @@ is modelled as the sum of a spatial and a time part (docs/explanation/planner.md
 
 and its time (CPU seconds of one thread) as the solves it takes times what one solve costs:
 
-    solves = s T (E/T / 1e-2)^-b                per scheme (attempted steps x solves per step)
+    solves = max(s T (E/T / 1e-2)^-b, n_step n_min)   per scheme; n_min: the fewest steps (fewest_steps)
     time = solves [k t_solve(p) + c N]          t_solve: vesflow.costs (the model of `vesflow check`)
 
 The constants (FIT) are fitted by vesflow.plan_fit to the study's cases; f_s, f_t and a factor on
