@@ -223,7 +223,10 @@ def calibrate(scene, pl, fraction=1.0, log=print, cache_dir=None):
                 "euler": clip(e_eul / m0.e_time("euler", PILOT_TOL, t_p))}
     m.f_space = clip(e_sp / max(s_lo - s_hi, 1e-300))
     for scheme, keys in (("sdc", ("sdc_lo", "sdc_hi")), ("euler", ("euler_lo",))):
-        m.f_solves[scheme] = clip(np.mean([out[k]["solves"] / m0.solves(scheme, sets[k].tol, t_p) for k in keys]))
+        # above the fewest steps only (a pilot that took them says nothing about the rate)
+        floor = planner.SOLVES_PER_STEP[scheme] * planner.fewest_steps(t_p, scene.time.dt)
+        m.f_solves[scheme] = clip(np.mean([max(out[k]["solves"], floor) / m0.solves(scheme, sets[k].tol, t_p)
+                                           for k in keys]))
         m.f_cost[scheme] = clip(np.exp(np.mean([np.log(out[k]["cpu"] / out[k]["solves"] /
                                                       m0.seconds_per_solve(scheme, sub_pl._solve_cost(sets[k])[0],
                                                                            scene.n_vesicles)) for k in keys])))

@@ -10,7 +10,7 @@ is modelled as the sum of a spatial and a time part (docs/explanation/planner.md
 
 and its time (CPU seconds of one thread) as the solves it takes times what one solve costs:
 
-    solves = s T (E/T / 1e-2)^-b                per scheme (attempted steps x solves per step)
+    solves = max(s T (E/T / 1e-2)^-b, n_step n_min)   per scheme; n_min: the fewest steps (fewest_steps)
     time = solves [k t_solve(p) + c N]          t_solve: vesflow.costs (the model of `vesflow check`)
 
 The constants (FIT) are fitted by vesflow.plan_fit to the study's cases; f_s, f_t and a factor on
@@ -47,6 +47,7 @@ SCHEMES = ("euler", "sdc")
 P_CHOICES = tuple(range(8, 17))                    # the study's degrees: outside them the spatial model is not fitted
 TOL_GRID = tuple(float(f"{1e-3 * 2 ** (k / 2):.3g}") for k in range(0, 13))   # E/T 1e-3 ... 6.4e-2, sqrt(2) apart
 FAR_TOLS = (1e-4, 1e-5, 1e-6, 1e-7, 1e-8)          # -ves_far_tol (fmm / ewald only)
+SOLVES_PER_STEP = {"euler": 3, "sdc": 10}         # step doubling; 3 Radau nodes x 2 sweeps (vesflow.sdc)
 SINGLE_MIN_ERROR = 1e-6                            # float32 self operators: 1.8e-10 at T = 1 (docs/explanation/parallel.md)
 
 
@@ -121,13 +122,24 @@ class Model:
         t = self.fit["time"][scheme]
         return self.f_time[scheme] * t["A"] * (tol / 1e-2) ** t["a"] * horizon / self.fit["horizon"]
 
-    def solves(self, scheme, tol, horizon):
+    def solves(self, scheme, tol, horizon, dt0=None):
+        """The fitted count, and at least the solves of the fewest steps that reach the horizon
+        (dt0: the scene's first step; the step grows at most 2x per accepted step)."""
         s = self.fit["solves"][scheme]
-        return self.f_solves[scheme] * s["s"] * horizon * (tol / 1e-2) ** (-s["b"])
+        n = self.f_solves[scheme] * s["s"] * horizon * (tol / 1e-2) ** (-s["b"])
+        return max(n, SOLVES_PER_STEP[scheme] * fewest_steps(horizon, dt0)) if dt0 else n
 
     def seconds_per_solve(self, scheme, t_solve, n_vesicles):
         c = self.fit["cost"][scheme]
         return self.f_cost[scheme] * (c["k"] * t_solve + c["c"] * n_vesicles)
+
+
+def fewest_steps(horizon, dt0):
+    """Steps dt0, 2 dt0, 4 dt0, ... (the last one landing on the horizon) that cover it."""
+    n, t, dt = 0, 0.0, dt0
+    while t < horizon * (1 - 1e-12):
+        t, dt, n = t + dt, 2 * dt, n + 1
+    return n
 
 
 def t_solve(scene, setting):
@@ -159,7 +171,7 @@ class Planner:
         T, m = self.scene.time.horizon, self.model
         es, et = m.e_space(setting.p, T), m.e_time(setting.scheme, setting.tol, T)
         ef = 0.0 if setting.far_tol is None else setting.far_tol * T
-        n = m.solves(setting.scheme, setting.tol, T)
+        n = m.solves(setting.scheme, setting.tol, T, self.scene.time.dt)
         t, _ = self._solve_cost(setting)
         sec = n * m.seconds_per_solve(setting.scheme, t, self.scene.n_vesicles)
         return Prediction(setting, es + et + ef, es, et, ef, n, sec)

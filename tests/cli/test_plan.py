@@ -42,16 +42,26 @@ def one():
 
 def test_planner_picks_the_cheaper_of_two_settings_that_reach_E(one):
     # p and E/T fixed: two candidates, euler (error 1e-3 * 1) and sdc (1e-4): both reach 2e-3
-    for solves_sdc, want in ((200.0, "euler"), (20.0, "sdc")):
-        pl = planner.Planner(one, synthetic(solves_sdc=(solves_sdc, 0.2)), fixed={"p": 8, "tol": 1e-2})
+    for solves_sdc, want in ((500.0, "euler"), (100.0, "sdc")):
+        pl = planner.Planner(one, synthetic(solves_euler=(300.0, 1.0), solves_sdc=(solves_sdc, 0.2)),
+                             fixed={"p": 8, "tol": 1e-2})
         best, runner = pl.plan(error=2e-3)
         e, s = (pl.predict(planner.replace(best.setting, scheme=k)) for k in ("euler", "sdc"))
         assert e.error <= 2e-3 and s.error <= 2e-3
         assert best.setting.scheme == want and runner.setting.scheme != want
         assert best.seconds == min(e.seconds, s.seconds) < max(e.seconds, s.seconds) == runner.seconds
     # E = 5e-4: only sdc reaches it, even when euler is cheaper
-    pl = planner.Planner(one, synthetic(solves_sdc=(200.0, 0.2)), fixed={"p": 8, "tol": 1e-2})
+    pl = planner.Planner(one, synthetic(solves_euler=(300.0, 1.0), solves_sdc=(500.0, 0.2)), fixed={"p": 8, "tol": 1e-2})
     assert pl.plan(error=5e-4)[0].setting.scheme == "sdc"
+
+
+def test_solves_are_at_least_those_of_the_fewest_steps(one):
+    # the step grows at most 2x: dt0 = 0.01 over T = 1 takes 0.01, 0.02, ..., 0.64 (landing): 7 steps
+    assert planner.fewest_steps(1.0, 0.01) == 7 and planner.fewest_steps(0.03, 0.01) == 2
+    pl = planner.Planner(one, synthetic(solves_euler=(1.0, 1.0), solves_sdc=(1.0, 0.2)))
+    for scheme, per_step in (("euler", 3), ("sdc", 10)):
+        pr = pl.predict(planner.Setting(scheme, 8, 1e-2, 16, 16))
+        assert pr.solves == per_step * 7
 
 
 def test_planner_search_is_the_minimum_over_its_grid(one):
@@ -142,11 +152,12 @@ def test_run_with_accuracy_plans_says_it_in_one_line_and_stores_the_plan(tmp_pat
     assert len(lines) == 1 and "p = 6" in lines[0] and "predicted error" in lines[0]
     with h5py.File(out, "r") as f:
         plan = json.loads(f.attrs["plan"])
-        resolved = f.attrs["options_resolved"]
-        resolved = resolved.decode() if isinstance(resolved, bytes) else resolved
+        resolved, given = (f.attrs[k].decode() if isinstance(f.attrs[k], bytes) else f.attrs[k]
+                           for k in ("options_resolved", "options"))
     assert plan["error_target"] == 1e-2 and plan["chosen"]["p"] == 6 and plan["predicted_error"] <= 1e-2
     assert f"-ts_type {plan['chosen']['scheme']}" in resolved
-    assert f"-ves_adapt_tol {plan['chosen']['tol']:g}"[:20] in resolved or "-ves_adapt_tol" in resolved
+    assert f"-ves_adapt_tol {plan['chosen']['tol']:g}" in resolved
+    assert given.startswith(plan["options"]) and given.endswith("-ves_p 6")     # the plan's, then ours
 
 
 def test_pilot_factors_are_measured_over_predicted(one, monkeypatch):
@@ -158,7 +169,7 @@ def test_pilot_factors_are_measured_over_predicted(one, monkeypatch):
         key = {("sdc", 8, 2e-2): "sdc_lo", ("sdc", 8, 5e-3): "sdc_lo_fine", ("euler", 8, 2e-2): "euler_lo",
                ("sdc", 12, 2e-2): "sdc_hi"}[(s.scheme, s.p, s.tol)]
         runs[key] = horizon
-        solves = {"sdc_lo": 30, "sdc_lo_fine": 50, "euler_lo": 12, "sdc_hi": 30}[key]
+        solves = {"sdc_lo": 60, "sdc_lo_fine": 80, "euler_lo": 30, "sdc_hi": 60}[key]
         return {"final": {"centroid": [[off[key] * L, 0.0, 0.0]], "length": [L]}, "solves": solves,
                 "cpu": 0.05 * solves * (s.p / 8) ** 2, "status": "ok"}
 
@@ -171,10 +182,10 @@ def test_pilot_factors_are_measured_over_predicted(one, monkeypatch):
     assert m.f_time["sdc"] == pytest.approx(3e-4 / (1 - 4.0 ** -a) / m0.e_time("sdc", 2e-2, t_p))
     assert m.f_time["euler"] == pytest.approx(2e-3 / m0.e_time("euler", 2e-2, t_p))
     assert m.f_space == pytest.approx(2e-4 / (m0.e_space(8, t_p) - m0.e_space(12, t_p)))
-    assert m.f_solves["euler"] == pytest.approx(12 / m0.solves("euler", 2e-2, t_p))
+    assert m.f_solves["euler"] == pytest.approx(30 / m0.solves("euler", 2e-2, t_p))
     # the calibrated model predicts what the pilots measured (at the pilot's horizon)
     sub = planner.Planner(planner.optmod.apply_overrides(one, planner.optmod.dict_getter({"-ts_max_time": t_p})), m)
     e = sub.predict(planner.Setting("euler", 8, 2e-2, 16, 16))
-    assert e.e_time == pytest.approx(2e-3) and e.solves == pytest.approx(12)
-    assert e.seconds == pytest.approx(0.05 * 12)
+    assert e.e_time == pytest.approx(2e-3) and e.solves == pytest.approx(30)
+    assert e.seconds == pytest.approx(0.05 * 30)
     assert "4 pilot runs" in m.pilot
