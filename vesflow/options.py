@@ -128,7 +128,7 @@ REGISTRY: tuple[Option, ...] = (
        choices=("implicit", "explicit")),
     # -- time stepping ---------------------------------------------------------------------------
     _O("-ts_type", str, None, "time integrator: euler (the first-order semi-implicit step, paper 3.6) or "
-       "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/sdc.py; cheaper "
+       "sdc (spectral deferred correction on it, order min(sweeps + 1, 2 nodes - 2), vesflow/stepping/sdc.py; cheaper "
        "than euler at the same error but the loosest, docs/explanation/accuracy_cost.md)",
        "time stepping", choices=("euler", "sdc"), default_text="sdc (euler with -ves_coupling explicit)"),
     _O("-ts_sdc_nodes", int, 3, "nodes of an sdc step with its start (nodes - 1 substeps)", "time stepping",
