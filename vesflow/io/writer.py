@@ -1,10 +1,12 @@
 """Writing a run file: frames, steps, timings, checkpoint; reopening it for a restart."""
 from __future__ import annotations
 
+import atexit
 import errno
 import functools
 import json
 import os
+import weakref
 from pathlib import Path
 
 import h5py
@@ -42,6 +44,22 @@ def _guarded(fn):
     return wrapper
 
 
+_OPEN = weakref.WeakSet()    # writers whose file is open (closed at exit, see _close_open_writers)
+
+
+@atexit.register
+def _close_open_writers():
+    """Close the files of writers nobody closed (e.g. after a failed write raised) while Python
+    still runs: HDF5's own handler at process exit would call into the Python file layer after
+    the interpreter has ended (a segmentation fault)."""
+    for w in list(_OPEN):
+        w.defer_errors = True
+        try:
+            w.close()
+        except Exception:
+            pass
+
+
 class OutputWriter:
     """Writes one run file.  Use as a context manager or call close().
 
@@ -69,6 +87,7 @@ class OutputWriter:
         self._raw = None
         self._doing = "creating the file"
         self._committed = (0, None, None)    # frames, last frame time, checkpoint time on disk
+        _OPEN.add(self)
         self.xdmf = XdmfFile.beside(self.path)  # RUN.xmf beside the file, synced at every frame
         if _file is not None:  # reopen()
             self._f, self._raw = _file
@@ -470,13 +489,16 @@ class OutputWriter:
         earlier = self.failure
         try:
             if self._f.id.valid:
-                if earlier is None:
-                    self.flush()
-                self._doing = "closing it"
-                self._f.close()
+                try:
+                    if earlier is None:
+                        self.flush()
+                finally:                 # closed even when the flush failed: no HDF5 file left open
+                    self._doing = "closing it"
+                    self._f.close()
         finally:
             self._raw.close()
             self._f = None
+            _OPEN.discard(self)
         if self.failure is None and self._raw.error is not None:     # HDF5's last writes, at the close
             self.failure = self._output_error()
             if not self.defer_errors:
