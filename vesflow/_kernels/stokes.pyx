@@ -26,6 +26,8 @@ only equality matters.
 """
 import numpy as np
 
+from vesflow._kernels import paths
+
 from cython.parallel cimport prange
 from libc.math cimport sqrt, M_PI
 cimport openmp
@@ -36,7 +38,9 @@ cdef extern from "pairsum.h" nogil:
                             const double* x, double* o)
     void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
                             Py_ssize_t s1, const double* x, double* o)
-    int vf_pairsum_path(int avx512)
+    int vf_pairsum_set(int mode)
+    int vf_pairsum_use()
+    int vf_path_best()
     void vf_stokeslet_planar_targets(const double* src, const double* f, Py_ssize_t m, const double* x,
                                      Py_ssize_t K, double* o)
     void vf_stresslet_planar_targets(const double* src, const double* nw, const double* g, Py_ssize_t m,
@@ -146,11 +150,20 @@ cdef _check_same(name_a, Py_ssize_t na, name_b, Py_ssize_t nb):
 
 # ---------------------------------------------------------------------------------------
 # all sources -> all targets
-def set_vector_path(bint avx512):
-    """The range sums of pairsum.h by its AVX-512 loop (True; only if the CPU has AVX-512F/DQ)
-    or by the compiled vectorized loops (False); returns whether AVX-512 is now used.  Default:
-    AVX-512 where available (tests compare the two)."""
-    return bool(vf_pairsum_path(avx512))
+def set_vector_path(path):
+    """Run the pair sums of pairsum.h by the vector path `path`: "avx512", "avx2", "generic"
+    (vesflow._kernels.paths), True (the best this CPU runs) or False ("generic"); a
+    SettingsError if the CPU cannot run it.  Returns the path's name."""
+    vf_pairsum_set(paths.index(path, vf_path_best()))
+    return vector_path()
+
+
+def vector_path():
+    """The name of the vector path the pair sums run ("avx512", "avx2" or "generic")."""
+    return paths.PATHS[vf_pairsum_use()]
+
+
+vf_pairsum_set(paths.from_environment(vf_path_best()))
 
 
 # ---------------------------------------------------------------------------------------
