@@ -27,6 +27,7 @@ SCRIPTS = [
     ("far_field.py", ["--sizes", "4", "8", "16", "--repeat", "1", "--max-seconds", "60", "--budget", "120"]),
     ("setup_operators.py", ["--n", "4", "--p", "8", "--repeat", "1"]),
     ("iteration.py", ["--n", "8", "--p", "8", "--repeat", "1"]),
+    ("pair_kernels.py", ["--repeat", "1", "--sources", "2000", "--blocks", "100"]),
     ("gmres_iterations.py", ["--sizes", "2", "8", "--degrees", "8"]),
     ("step_cost.py", ["--p", "6", "--steps", "10"]),
     ("render_movie.py", ["--frames", "60"]),
