@@ -4,10 +4,14 @@ Kernels of the docs/explanation/method.md, section 4 (mu = 1, r = x - y):
   Stokeslet  S f = (1/(8 pi)) (f/r + r (r.f)/r^3)
   stresslet  D g = -(3/(4 pi)) (r.nw)(r.g) r / r^5
 """
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
-from vesflow._kernels import search, stokes
+from vesflow._kernels import paths, search, stokes
 from vesflow.errors import SettingsError
 from vesflow.layerpot import far
 
@@ -63,30 +67,86 @@ def cloud(rng):
     return src, trg
 
 
-# ----------------------------------------------------------------------------- plain sums
-def test_avx512_and_compiled_range_sums_agree(rng, cloud):
-    """pairsum.h's AVX-512 loop (de-interleaved loads, rsqrt14 + Newton) against its compiled
-    loops: Stokeslet and stresslet, a coincident pair, source counts not a multiple of 8."""
+# ----------------------------------------------------------------------------- vector paths
+# every path this CPU runs (an AVX-512 machine tests all three: a CI machine with AVX2 only
+# runs avx2 and generic, so an error of a path must fail where it can run)
+PATHS_HERE = paths.PATHS[:paths.PATHS.index(stokes.set_vector_path(True)) + 1]
+
+
+@pytest.fixture(params=PATHS_HERE)
+def path(request):
+    """Run the test on one vector path of pairsum.h (stokes module), the best one afterwards."""
+    try:
+        assert stokes.set_vector_path(request.param) == request.param == stokes.vector_path()
+        yield request.param
+    finally:
+        stokes.set_vector_path(True)
+
+
+def test_range_sums_match_numpy_on_every_path(rng, cloud, path):
+    """pairsum.h's range sums (AVX-512: 8 lanes, rsqrt14 + 2 Newton steps; AVX2: 4 lanes,
+    float rsqrt + Newton + a third-order step; generic: the compiled loops) against numpy:
+    Stokeslet and stresslet, a coincident pair (skipped), 397 sources (not a multiple of 4 or 8)."""
     src, trg = cloud
     src = src[:397]
     f, nw, g = rng.standard_normal((3, src.shape[0], 3))
-    outs = []
+    a, b = np.zeros_like(trg), np.zeros_like(trg)
+    stokes.stokeslet_sum(src, f, trg, a)
+    stokes.stresslet_sum(src, nw, g, trg, b)
+    assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
+    assert relerr(a, ref_stokeslet(src, f, trg)) < RTOL
+    assert relerr(b, ref_stresslet(src, nw, g, trg)) < RTOL
+    for m in (1, 2, 3, 5, 6, 7):                      # the partial blocks alone
+        a = np.zeros((3, 3))
+        stokes.stokeslet_sum(src[:m], f[:m], trg[:3], a)
+        assert relerr(a, ref_stokeslet(src[:m], f[:m], trg[:3])) < RTOL
+
+
+def test_extreme_distances_on_every_path(path):
+    """Distances outside the single-precision range of the AVX2 estimate (|r|^2 < 1e-36 or
+    > 1e36: 1/r lane by lane) beside ordinary ones, and a relative accuracy below 1e-14 for
+    distances over 12 decades."""
+    src = np.zeros((6, 3))
+    src[:, 0] = [1e-20, -3e-19, 2e19, 0.5, 1e-10, 1e10]
+    trg = np.zeros((1, 3))
+    for k in range(6):
+        f = np.zeros((6, 3))
+        f[k, 1] = 1.0
+        out = np.zeros((1, 3))
+        stokes.stokeslet_sum(src, f, trg, out)
+        want = 1.0 / (8 * np.pi * abs(src[k, 0]))
+        assert abs(out[0, 1] - want) <= 1e-15 * want, (k, out[0, 1], want)
+    r = np.logspace(-6, 6, 397)
+    src = np.stack([r, 0.3 * r, -0.2 * r], 1)
+    f = np.ones_like(src)
+    out = np.zeros((1, 3))
+    stokes.stokeslet_sum(src, f, trg, out)
+    assert relerr(out, ref_stokeslet(src, f, trg)) < 1e-14
+
+
+def test_vector_path_choice():
+    """The path by name, True (the best) and False (generic); an unknown name is a one-line
+    SettingsError naming the valid ones; VESFLOW_SIMD sets the path of both kernel modules at
+    import and is checked likewise."""
     try:
-        have = stokes.set_vector_path(True)
-        for path in (True, False):
-            stokes.set_vector_path(path)
-            a, b = np.zeros_like(trg), np.zeros_like(trg)
-            stokes.stokeslet_sum(src, f, trg, a)
-            stokes.stresslet_sum(src, nw, g, trg, b)
-            outs.append((a, b))
+        assert stokes.set_vector_path(False) == "generic" == stokes.vector_path()
+        assert stokes.set_vector_path(True) == PATHS_HERE[-1]
+        with pytest.raises(SettingsError, match="must be one of generic, avx2, avx512"):
+            stokes.set_vector_path("sse")
+        assert stokes.vector_path() == PATHS_HERE[-1]           # unchanged by the error
     finally:
         stokes.set_vector_path(True)
-    if not have:
-        pytest.skip("no AVX-512 on this CPU")
-    assert relerr(outs[0][0], outs[1][0]) < RTOL and relerr(outs[0][1], outs[1][1]) < RTOL
-    assert relerr(outs[0][0], ref_stokeslet(src, f, trg)) < RTOL
+    code = "from vesflow._kernels import stokes, ewald; print(stokes.vector_path(), ewald.vector_path())"
+    for name in PATHS_HERE:
+        res = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, VESFLOW_SIMD=name),
+                             capture_output=True, text=True, check=True)
+        assert res.stdout.split() == [name, name]
+    res = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, VESFLOW_SIMD="avx3"),
+                         capture_output=True, text=True)
+    assert res.returncode != 0 and "VESFLOW_SIMD=avx3: must be one of generic, avx2, avx512" in res.stderr
 
 
+# ----------------------------------------------------------------------------- plain sums
 def test_stokeslet_sum_matches_numpy(rng, cloud):
     src, trg = cloud
     f = rng.standard_normal(src.shape)
@@ -120,7 +180,7 @@ def test_shape_errors(rng):
 
 # ----------------------------------------------------------------------------- exclusion and pairs
 @pytest.mark.parametrize("ids", ["random", "sorted"])
-def test_excl_variants(rng, cloud, ids):
+def test_excl_variants(rng, cloud, ids, path):
     """Unsorted ids take the per-pair test; sorted ids (vesicle order, the run's case) the sums
     around the own group's range (pairsum.h), including ids no source has (-1, 7)."""
     src, trg = cloud
@@ -138,7 +198,7 @@ def test_excl_variants(rng, cloud, ids):
     assert relerr(out, ref_stresslet(src, nw, g, trg, mask)) < RTOL
 
 
-def test_pairs_variants(rng, cloud):
+def test_pairs_variants(rng, cloud, path):
     src, trg = cloud
     sizes = np.array([50, 0, 120, 80, 150])            # an empty vesicle too
     off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -162,9 +222,12 @@ def test_pairs_variants(rng, cloud):
         stokes.stokeslet_sum_pairs(src, f, off, trg, np.array([[0, 5]]), np.zeros((1, 3)))
 
 
-def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud):
+def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud, path):
     """Blocks of 9 targets against one vesicle (the near correction), vectorized across the
-    block: bit for bit the values of the pair kernels, a coincident point contributing 0."""
+    block: on the vector paths bit for bit the values of the pair kernels (the same lanes per
+    target), on the compiled loops to rounding; a coincident point contributing 0."""
+    exact = (lambda a, b: np.array_equal(a, b)) if path != "generic" else \
+        (lambda a, b: np.abs(a - b).max() <= 1e-13 * np.abs(b).max())
     src, trg = cloud
     sizes = np.array([50, 0, 120, 80, 150])
     off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -181,18 +244,11 @@ def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud):
         pair_kernel(src, *dens, off, blocks.reshape(-1, 3), pairs, ref)
         ref = ref.reshape(P, K, 3)
         planar = [stokes.planar(a, off) for a in (src,) + dens]
-        for k in (9, 5, 4, 2, 1):                       # passes of 3 targets and the shorter rest
+        for k in (9, 5, 4, 2, 1):                       # passes of 3 (2) targets and the shorter rest
             out = np.zeros((P, k, 3))
             block_kernel(*planar, off, np.ascontiguousarray(blocks[:, :k]), ves, out)
-            assert np.array_equal(out, ref[:, :k]) and np.all(np.isfinite(out))
+            assert exact(out, ref[:, :k]) and np.all(np.isfinite(out))
             assert np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
-        try:                                            # the compiled (non-AVX-512) loops
-            stokes.set_vector_path(False)
-            out = np.zeros((P, K, 3))
-            block_kernel(*planar, off, blocks, ves, out)
-        finally:
-            stokes.set_vector_path(True)
-        assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max() and np.all(out[ves == 1] == 0.0)
     # both layers in one pass: bit for bit the Stokeslet call followed by the stresslet call
     planar = [stokes.planar(a, off) for a in (src, f, nw, g)]
     for k in (1, 2, 5, 9):
@@ -202,14 +258,12 @@ def test_block_kernels_equal_the_pair_kernels_exactly(rng, cloud):
         stokes.stresslet_sum_blocks(planar[0], planar[2], planar[3], off, b, ves, ref)
         out = np.zeros((P, k, 3))
         stokes.stokeslet_stresslet_sum_blocks(*planar, off, b, ves, out)
-        assert np.array_equal(out, ref) and np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
-    try:                                                # the compiled loops, against the K = 9 values
-        stokes.set_vector_path(False)
-        out = np.zeros((P, K, 3))
-        stokes.stokeslet_stresslet_sum_blocks(*planar, off, blocks, ves, out)
-    finally:
-        stokes.set_vector_path(True)
-    assert np.abs(out - ref).max() < 1e-13 * np.abs(ref).max()
+        assert exact(out, ref) and np.all(out[ves == 1] == 0.0) and np.any(out[0] != 0.0)
+    # against numpy pair by pair (the last, both layers, at k = 9)
+    want = np.stack([ref_stokeslet(src[off[v]:off[v + 1]], f[off[v]:off[v + 1]], blocks[p])
+                     + ref_stresslet(src[off[v]:off[v + 1]], nw[off[v]:off[v + 1]], g[off[v]:off[v + 1]], blocks[p])
+                     if off[v + 1] > off[v] else np.zeros((K, 3)) for p, v in enumerate(ves)])
+    assert relerr(out, want) < RTOL
     sp, fp = stokes.planar(src, off), stokes.planar(f, off)
     with pytest.raises(ValueError, match="at most 16"):
         stokes.stokeslet_sum_blocks(sp, fp, off, np.zeros((1, 17, 3)), np.zeros(1, dtype=np.int64),

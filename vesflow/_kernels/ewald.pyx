@@ -51,6 +51,8 @@ sums of ``pairsum.h``.  Every output row ACCUMULATES (``out += ...``).
 """
 import numpy as np
 
+from vesflow._kernels import paths
+
 from cython.parallel cimport prange
 from libc.math cimport sqrt, exp, erf, M_PI
 from libc.stdlib cimport malloc, free
@@ -67,9 +69,9 @@ cdef extern from "ewaldsum.h" nogil:
     void vf_smooth_row(const double* x, const double* y0, const double* y1, const double* y2, const double* w,
                        const double* n0, const double* n1, const double* n2, Py_ssize_t S, double xi,
                        double* sg, double* db)
-    int vf_real_path_avx512
-    int vf_pairsum_path(int avx512)
-    int vf_avx512_available()
+    int vf_pairsum_set(int mode)
+    int vf_pairsum_use()
+    int vf_path_best()
     void vf_stokeslet_range(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
                             const double* x, double* o)
     void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
@@ -92,17 +94,20 @@ cdef enum:
 
 
 
-def set_vector_path(bint avx512):
-    """Use the AVX-512 real-space loop and own-vesicle range sums (True; only if the CPU has
-    AVX-512F/DQ) or the portable vectorized ones (False); returns whether AVX-512 is now used.
-    Default: AVX-512 where available (tests compare the two)."""
-    global vf_real_path_avx512
-    vf_real_path_avx512 = 1 if (avx512 and vf_avx512_available()) else 0
-    vf_pairsum_path(vf_real_path_avx512)
-    return bool(vf_real_path_avx512)
+def set_vector_path(path):
+    """Run the real-space loop and the own-vesicle range sums by the vector path `path`:
+    "avx512", "avx2", "generic" (vesflow._kernels.paths), True (the best this CPU runs) or
+    False ("generic"); a SettingsError if the CPU cannot run it.  Returns the path's name."""
+    vf_pairsum_set(paths.index(path, vf_path_best()))
+    return vector_path()
 
 
-set_vector_path(True)
+def vector_path():
+    """The name of the vector path the real-space and range sums run."""
+    return paths.PATHS[vf_pairsum_use()]
+
+
+vf_pairsum_set(paths.from_environment(vf_path_best()))
 
 
 def real_coefficients(double xi, const double[::1] r):

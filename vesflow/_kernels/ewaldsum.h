@@ -231,9 +231,7 @@ VF_REAL_VARIANT(vf_ewald_real_s_mi, 1, 1, 0)
 VF_REAL_VARIANT(vf_ewald_real_d_mi, 1, 0, 1)
 VF_REAL_VARIANT(vf_ewald_real_sd_mi, 1, 1, 1)
 
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-#include <immintrin.h>
-#define VF_HAVE_AVX512_PATH 1
+#ifdef VF_X86_PATHS
 #define VF_AVX512 __attribute__((target("avx512f,avx512dq,fma")))
 #define VF_S(c) _mm512_set1_pd(c)
 
@@ -396,17 +394,10 @@ VF_AVX512 static void vf_ewald_real_avx512(const double *y, const double *d, ptr
     o[2] += (_mm512_reduce_add_pd(a2) + z2) * c;
 }
 
-/* 1: the AVX-512 path (when the CPU has it), 0: the portable one (ewald.pyx's set_vector_path) */
-static int vf_real_path_avx512 = -1;
+#endif
 
-static int vf_avx512_available(void)
-{
-    __builtin_cpu_init();
-    return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
-}
-#else
-static int vf_real_path_avx512 = 0;
-static int vf_avx512_available(void) { return 0; }
+#ifdef VF_X86_PATHS
+#include "ewaldsum_avx2.h"
 #endif
 
 /* the real-space sum of one target over nr ranges of sources in place (layout above); sl, dl:
@@ -414,10 +405,11 @@ static int vf_avx512_available(void) { return 0; }
 static void vf_ewald_real(const double *y, const double *d, ptrdiff_t ld, const vf_range *rg, ptrdiff_t nr,
                           double xi, double rc2, const double *mL, const double *iL, int mi, int sl, int dl, double *o)
 {
-#ifdef VF_HAVE_AVX512_PATH
-    if (vf_real_path_avx512) {
-        vf_ewald_real_avx512(y, d, ld, rg, nr, xi, rc2, mL, iL, mi, sl, dl, o);
-        return;
+#ifdef VF_X86_PATHS
+    switch (vf_pairsum_use()) {       /* the path of pairsum.h's sums */
+    case VF_PATH_AVX512: vf_ewald_real_avx512(y, d, ld, rg, nr, xi, rc2, mL, iL, mi, sl, dl, o); return;
+    case VF_PATH_AVX2: vf_ewald_real_avx2(y, d, ld, rg, nr, xi, rc2, mL, iL, mi, sl, dl, o); return;
+    default: break;
     }
 #endif
     if (mi) {

@@ -14,7 +14,8 @@
  * sources per step, de-interleaved by two permutes per component, 1/r from the 14-bit
  * estimate vrsqrt14pd refined by two Newton steps (relative error ~1e-16): the square root and
  * the division are the slowest instructions of the compiled loop (~2x fewer cycles per pair).
- * vf_pairsum_path(0) selects the compiled loops (tests compare the two). */
+ * Where it has AVX2 and FMA but not AVX-512, the same loops on 4 lanes (pairsum_avx2.h).
+ * vf_pairsum_set selects a path (tests compare the three). */
 #ifndef VESFLOW_PAIRSUM_H
 #define VESFLOW_PAIRSUM_H
 #include <math.h>
@@ -119,32 +120,50 @@ VF_CLONES static void vf_stresslet_planar_clones(const double *src, const double
     o[1] += a1 * c;
     o[2] += a2 * c;
 }
+/* The vector path of the sums below, chosen once from the CPU (the best it has) or set by
+ * vf_pairsum_set (stokes.set_vector_path, VESFLOW_SIMD): VF_PATH_AVX512 (AVX-512F/DQ),
+ * VF_PATH_AVX2 (AVX2 + FMA: the same loops on 4 lanes), VF_PATH_GENERIC (the compiled loops). */
+#define VF_PATH_GENERIC 0
+#define VF_PATH_AVX2 1
+#define VF_PATH_AVX512 2
 #if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define VF_X86_PATHS 1
 #include <immintrin.h>
+static int vf_pairsum_mode = -1;     /* -1: not decided yet */
+
+/* the best path this CPU can run */
+static int vf_path_best(void)
+{
+    __builtin_cpu_init();
+    if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq"))
+        return VF_PATH_AVX512;
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+        return VF_PATH_AVX2;
+    return VF_PATH_GENERIC;
+}
+#else
+static int vf_pairsum_mode = VF_PATH_GENERIC;
+static int vf_path_best(void) { return VF_PATH_GENERIC; }
+#endif
+
+static int vf_pairsum_use(void)
+{
+    if (vf_pairsum_mode < 0)
+        vf_pairsum_mode = vf_path_best();
+    return vf_pairsum_mode;
+}
+
+/* select a path (VF_PATH_*); returns it, or -1 (nothing changed) if the CPU cannot run it */
+static int vf_pairsum_set(int mode)
+{
+    if (mode < VF_PATH_GENERIC || mode > vf_path_best())
+        return -1;
+    vf_pairsum_mode = mode;
+    return mode;
+}
+
+#ifdef VF_X86_PATHS
 #define VF_PAIRSUM_AVX512 __attribute__((target("avx512f,avx512dq,fma")))
-
-/* -1: not decided yet (the CPU is asked once), 0: compiled loops, 1: AVX-512 */
-static int vf_pairsum_avx512 = -1;
-
-static int vf_pairsum_use_avx512(void)
-{
-    if (vf_pairsum_avx512 < 0) {
-        __builtin_cpu_init();
-        vf_pairsum_avx512 = __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq");
-    }
-    return vf_pairsum_avx512;
-}
-
-/* select the loops: 1 AVX-512 (if the CPU has it), 0 the compiled ones; returns the choice */
-static int vf_pairsum_path(int avx512)
-{
-    vf_pairsum_avx512 = -1;
-    if (!avx512) {
-        vf_pairsum_avx512 = 0;
-        return 0;
-    }
-    return vf_pairsum_use_avx512();
-}
 
 /* sources s .. s + m - 1 (m <= 8) of an (n, 3) array as three 8-lane columns (0 beyond m) */
 VF_PAIRSUM_AVX512 static inline void vf_load3x8(const double *p, ptrdiff_t s, int m, __m512d *c0, __m512d *c1,
@@ -468,21 +487,27 @@ VF_PAIRSUM_AVX512 static void vf_both_planar_avx512(const double *src, const dou
     else if (K - k == 1)
         vf_both_planar_k(src, f, nw, g, m, x + 3 * k, 1, o + 3 * k);
 }
+#include "pairsum_avx2.h"
+#endif
+
+/* The entry points: the path of vf_pairsum_use() (VF_X86_PATHS), else the compiled loops.
+ * VF_DISPATCH(call512, call2) runs and returns from the caller where a vector path is on. */
+#ifdef VF_X86_PATHS
+#define VF_DISPATCH(call512, call2)                                                              \
+    switch (vf_pairsum_use()) {                                                                  \
+    case VF_PATH_AVX512: call512; return;                                                        \
+    case VF_PATH_AVX2: call2; return;                                                            \
+    default: break;                                                                              \
+    }
 #else
-static int vf_pairsum_use_avx512(void) { return 0; }
-static int vf_pairsum_path(int avx512) { (void)avx512; return 0; }
+#define VF_DISPATCH(call512, call2)
 #endif
 
 /* o[0:3] += (1/(8 pi)) sum_s (f_s / r + r (r . f_s) / r^3),  r = x - src_s (r = 0 skipped) */
 static void vf_stokeslet_range(const double *src, const double *f, ptrdiff_t s0, ptrdiff_t s1, const double *x,
                                double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        vf_stokeslet_range_avx512(src, f, s0, s1, x, o);
-        return;
-    }
-#endif
+    VF_DISPATCH(vf_stokeslet_range_avx512(src, f, s0, s1, x, o), vf_stokeslet_multi_avx2(src, f, s0, s1, x, 1, o))
     vf_stokeslet_range_clones(src, f, s0, s1, x, o);
 }
 
@@ -490,12 +515,8 @@ static void vf_stokeslet_range(const double *src, const double *f, ptrdiff_t s0,
 static void vf_stresslet_range(const double *src, const double *nw, const double *g, ptrdiff_t s0, ptrdiff_t s1,
                                const double *x, double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        vf_stresslet_range_avx512(src, nw, g, s0, s1, x, o);
-        return;
-    }
-#endif
+    VF_DISPATCH(vf_stresslet_range_avx512(src, nw, g, s0, s1, x, o),
+                vf_stresslet_multi_avx2(src, nw, g, s0, s1, x, 1, o))
     vf_stresslet_range_clones(src, nw, g, s0, s1, x, o);
 }
 /* K targets x[3k..3k+2] (any K) against sources s0 .. s1: o[3k..] as vf_stokeslet_range for
@@ -503,13 +524,9 @@ static void vf_stresslet_range(const double *src, const double *nw, const double
 static void vf_stokeslet_targets(const double *src, const double *f, ptrdiff_t s0, ptrdiff_t s1, const double *x,
                                  ptrdiff_t K, double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        for (ptrdiff_t k = 0; k < K; k += VF_MT)
-            vf_stokeslet_multi_avx512(src, f, s0, s1, x + 3 * k, (int)(K - k < VF_MT ? K - k : VF_MT), o + 3 * k);
-        return;
-    }
-#endif
+    VF_DISPATCH(for (ptrdiff_t k = 0; k < K; k += VF_MT) vf_stokeslet_multi_avx512(
+                    src, f, s0, s1, x + 3 * k, (int)(K - k < VF_MT ? K - k : VF_MT), o + 3 * k),
+                vf_stokeslet_targets_avx2(src, f, s0, s1, x, K, o))
     for (ptrdiff_t k = 0; k < K; ++k)
         vf_stokeslet_range_clones(src, f, s0, s1, x + 3 * k, o + 3 * k);
 }
@@ -517,13 +534,9 @@ static void vf_stokeslet_targets(const double *src, const double *f, ptrdiff_t s
 static void vf_stresslet_targets(const double *src, const double *nw, const double *g, ptrdiff_t s0, ptrdiff_t s1,
                                  const double *x, ptrdiff_t K, double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        for (ptrdiff_t k = 0; k < K; k += VF_MT)
-            vf_stresslet_multi_avx512(src, nw, g, s0, s1, x + 3 * k, (int)(K - k < VF_MT ? K - k : VF_MT), o + 3 * k);
-        return;
-    }
-#endif
+    VF_DISPATCH(for (ptrdiff_t k = 0; k < K; k += VF_MT) vf_stresslet_multi_avx512(
+                    src, nw, g, s0, s1, x + 3 * k, (int)(K - k < VF_MT ? K - k : VF_MT), o + 3 * k),
+                vf_stresslet_targets_avx2(src, nw, g, s0, s1, x, K, o))
     for (ptrdiff_t k = 0; k < K; ++k)
         vf_stresslet_range_clones(src, nw, g, s0, s1, x + 3 * k, o + 3 * k);
 }
@@ -532,12 +545,7 @@ static void vf_stresslet_targets(const double *src, const double *nw, const doub
 static void vf_stokeslet_planar_targets(const double *src, const double *f, ptrdiff_t m, const double *x, ptrdiff_t K,
                                         double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        vf_stokeslet_planar_avx512(src, f, m, x, K, o);
-        return;
-    }
-#endif
+    VF_DISPATCH(vf_stokeslet_planar_avx512(src, f, m, x, K, o), vf_stokeslet_planar_avx2(src, f, m, x, K, o))
     for (ptrdiff_t k = 0; k < K; ++k)
         vf_stokeslet_planar_clones(src, f, m, x + 3 * k, o + 3 * k);
 }
@@ -545,12 +553,7 @@ static void vf_stokeslet_planar_targets(const double *src, const double *f, ptrd
 static void vf_stresslet_planar_targets(const double *src, const double *nw, const double *g, ptrdiff_t m,
                                         const double *x, ptrdiff_t K, double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        vf_stresslet_planar_avx512(src, nw, g, m, x, K, o);
-        return;
-    }
-#endif
+    VF_DISPATCH(vf_stresslet_planar_avx512(src, nw, g, m, x, K, o), vf_stresslet_planar_avx2(src, nw, g, m, x, K, o))
     for (ptrdiff_t k = 0; k < K; ++k)
         vf_stresslet_planar_clones(src, nw, g, m, x + 3 * k, o + 3 * k);
 }
@@ -559,12 +562,7 @@ static void vf_stresslet_planar_targets(const double *src, const double *nw, con
 static void vf_both_planar_targets(const double *src, const double *f, const double *nw, const double *g, ptrdiff_t m,
                                    const double *x, ptrdiff_t K, double *o)
 {
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
-    if (vf_pairsum_use_avx512()) {
-        vf_both_planar_avx512(src, f, nw, g, m, x, K, o);
-        return;
-    }
-#endif
+    VF_DISPATCH(vf_both_planar_avx512(src, f, nw, g, m, x, K, o), vf_both_planar_avx2(src, f, nw, g, m, x, K, o))
     for (ptrdiff_t k = 0; k < K; ++k) {
         vf_stokeslet_planar_clones(src, f, m, x + 3 * k, o + 3 * k);
         vf_stresslet_planar_clones(src, nw, g, m, x + 3 * k, o + 3 * k);

@@ -26,6 +26,8 @@ only equality matters.
 """
 import numpy as np
 
+from vesflow._kernels import paths
+
 from cython.parallel cimport prange
 from libc.math cimport sqrt, M_PI
 cimport openmp
@@ -36,7 +38,13 @@ cdef extern from "pairsum.h" nogil:
                             const double* x, double* o)
     void vf_stresslet_range(const double* src, const double* nw, const double* g, Py_ssize_t s0,
                             Py_ssize_t s1, const double* x, double* o)
-    int vf_pairsum_path(int avx512)
+    int vf_pairsum_set(int mode)
+    void vf_stokeslet_targets(const double* src, const double* f, Py_ssize_t s0, Py_ssize_t s1,
+                              const double* x, Py_ssize_t K, double* o)
+    void vf_stresslet_targets(const double* src, const double* nw, const double* g, Py_ssize_t s0,
+                              Py_ssize_t s1, const double* x, Py_ssize_t K, double* o)
+    int vf_pairsum_use()
+    int vf_path_best()
     void vf_stokeslet_planar_targets(const double* src, const double* f, Py_ssize_t m, const double* x,
                                      Py_ssize_t K, double* o)
     void vf_stresslet_planar_targets(const double* src, const double* nw, const double* g, Py_ssize_t m,
@@ -146,11 +154,20 @@ cdef _check_same(name_a, Py_ssize_t na, name_b, Py_ssize_t nb):
 
 # ---------------------------------------------------------------------------------------
 # all sources -> all targets
-def set_vector_path(bint avx512):
-    """The range sums of pairsum.h by its AVX-512 loop (True; only if the CPU has AVX-512F/DQ)
-    or by the compiled vectorized loops (False); returns whether AVX-512 is now used.  Default:
-    AVX-512 where available (tests compare the two)."""
-    return bool(vf_pairsum_path(avx512))
+def set_vector_path(path):
+    """Run the pair sums of pairsum.h by the vector path `path`: "avx512", "avx2", "generic"
+    (vesflow._kernels.paths), True (the best this CPU runs) or False ("generic"); a
+    SettingsError if the CPU cannot run it.  Returns the path's name."""
+    vf_pairsum_set(paths.index(path, vf_path_best()))
+    return vector_path()
+
+
+def vector_path():
+    """The name of the vector path the pair sums run ("avx512", "avx2" or "generic")."""
+    return paths.PATHS[vf_pairsum_use()]
+
+
+vf_pairsum_set(paths.from_environment(vf_path_best()))
 
 
 # ---------------------------------------------------------------------------------------
@@ -169,9 +186,14 @@ def stokeslet_sum(const double[:, ::1] src, const double[:, ::1] f,
     cdef const double* pf = _p2(f)
     cdef const double* pt = _p2(trg)
     cdef double* po = _pw(out)
+    # the AVX2 path: 2 targets at a time share the de-interleaved sources (the same values)
+    cdef Py_ssize_t kc = 2 if vf_pairsum_use() == 1 else 1, nc = (nt + kc - 1) // kc
     with nogil:
-        for t in prange(nt, schedule="static"):
-            _stokeslet_range(ps, pf, 0, ns, NULL, 0, pt + 3 * t, po + 3 * t)
+        for t in prange(nc, schedule="static"):
+            if kc == 1:
+                _stokeslet_range(ps, pf, 0, ns, NULL, 0, pt + 3 * t, po + 3 * t)
+            else:
+                vf_stokeslet_targets(ps, pf, 0, ns, pt + 3 * kc * t, min(kc, nt - kc * t), po + 3 * kc * t)
 
 
 def stresslet_sum(const double[:, ::1] src, const double[:, ::1] nw, const double[:, ::1] g,
@@ -191,9 +213,13 @@ def stresslet_sum(const double[:, ::1] src, const double[:, ::1] nw, const doubl
     cdef const double* pg = _p2(g)
     cdef const double* pt = _p2(trg)
     cdef double* po = _pw(out)
+    cdef Py_ssize_t kc = 2 if vf_pairsum_use() == 1 else 1, nc = (nt + kc - 1) // kc
     with nogil:
-        for t in prange(nt, schedule="static"):
-            _stresslet_range(ps, pn, pg, 0, ns, NULL, 0, pt + 3 * t, po + 3 * t)
+        for t in prange(nc, schedule="static"):
+            if kc == 1:
+                _stresslet_range(ps, pn, pg, 0, ns, NULL, 0, pt + 3 * t, po + 3 * t)
+            else:
+                vf_stresslet_targets(ps, pn, pg, 0, ns, pt + 3 * kc * t, min(kc, nt - kc * t), po + 3 * kc * t)
 
 
 # ---------------------------------------------------------------------------------------
