@@ -131,23 +131,15 @@ def _quiet_petsc_exit():
 
 def _split_run_args(rest):
     """[SCENE] first (if not an option), then -o / --restart anywhere; the rest goes to PETSc."""
-    scene_path, out, restart, petsc = None, None, None, []
+    scene_path, out, restart = None, None, None
     if rest and not rest[0].startswith("-"):
         scene_path, rest = rest[0], rest[1:]
-    k = 0
-    while k < len(rest):
-        a = rest[k]
-        if a in ("-o", "--output", "--restart"):
-            if k + 1 >= len(rest):
-                raise SceneError(f"{a} needs a file name")
-            if a == "--restart":
-                restart = rest[k + 1]
-            else:
-                out = rest[k + 1]
-            k += 2
-            continue
-        petsc.append(a)
-        k += 1
+    pairs, petsc = options.take_valued(rest, ("-o", "--output", "--restart"), "a file name")
+    for name, value in pairs:
+        if name == "--restart":
+            restart = value
+        else:
+            out = value
     return scene_path, out, restart, petsc
 
 

@@ -20,7 +20,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from .errors import OptionError
+from .errors import OptionError, SceneError
 
 __all__ = ["Option", "OPTIONS", "REGISTRY", "OptionValues", "apply_overrides", "read_options", "help_text",
            "dict_getter", "argv_getter", "argv_pairs", "petsc_getter", "check_unknown", "parse_value"]
@@ -245,35 +245,29 @@ def parse_value(opt: Option | str, raw):
         return v
     if isinstance(raw, bool):
         _fail(o, raw, _range_text(o))
-    if o.type is int:
-        if isinstance(raw, float) and raw.is_integer():
-            v = int(raw)
-        elif isinstance(raw, int):
-            v = raw
-        elif isinstance(raw, str):
-            try:
-                v = int(raw.strip())
-            except ValueError:
-                _fail(o, raw, _range_text(o))
-        else:
-            _fail(o, raw, _range_text(o))
-    else:
-        if isinstance(raw, (int, float)):
-            v = float(raw)
-        elif isinstance(raw, str):
-            try:
-                v = float(raw.strip())
-            except ValueError:
-                _fail(o, raw, _range_text(o))
-        else:
-            _fail(o, raw, _range_text(o))
-        if not math.isfinite(v):
-            _fail(o, raw, "must be a finite number")
+    v = _number(o, raw)
+    if o.type is float and not math.isfinite(v):
+        _fail(o, raw, "must be a finite number")
     bad = ((o.gt is not None and not v > o.gt) or (o.ge is not None and not v >= o.ge)
            or (o.lt is not None and not v < o.lt) or (o.le is not None and not v <= o.le))
     if bad:
         _fail(o, raw, _range_text(o))
     return v
+
+
+def _number(o: Option, raw):
+    """raw (a number or its text) as o.type (int: an integral float is accepted), or _fail."""
+    if o.type is int and isinstance(raw, float) and raw.is_integer():
+        raw = int(raw)
+    numeric = (int,) if o.type is int else (int, float)
+    try:
+        if isinstance(raw, numeric):
+            return o.type(raw)
+        if isinstance(raw, str):
+            return o.type(raw.strip())
+    except ValueError:
+        pass
+    _fail(o, raw, _range_text(o))
 
 
 def _get(getter, o: Option):
@@ -429,6 +423,24 @@ def dict_getter(d: Mapping):
     """Getter over a dict keyed by option name, with or without the leading dash."""
     norm = {"-" + str(k).lstrip("-"): v for k, v in d.items()}
     return lambda name, type_, default: norm.get(name)
+
+
+def take_valued(args, names, what="a value"):
+    """The arguments of a command line split into ([(name, value)] for every name of `names`
+    with the argument after it, in order; the other arguments); SceneError "NAME needs WHAT"
+    when a name ends the line."""
+    pairs, others, k = [], [], 0
+    while k < len(args):
+        a = args[k]
+        if a in names:
+            if k + 1 >= len(args):
+                raise SceneError(f"{a} needs {what}")
+            pairs.append((a, args[k + 1]))
+            k += 2
+        else:
+            others.append(a)
+            k += 1
+    return pairs, others
 
 
 def argv_pairs(argv):

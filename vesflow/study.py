@@ -362,21 +362,15 @@ def main(argv):
         raise SceneError(f"unknown study {argv[0]!r}: the study is accuracy-cost")
     rest = argv[1:]
     scene_path, out, quick, ref, cases, fresh = "runs/accuracy_cost.toml", None, False, None, [], False
-    k = 0
-    while k < len(rest):
-        a = rest[k]
-        if a in ("--out", "--ref", "--case"):
-            if k + 1 >= len(rest):
-                raise SceneError(f"{a} needs a value")
-            v = rest[k + 1]
-            if a == "--out":
-                out = v
-            elif a == "--ref":
-                ref = parse_case(v)
-            else:
-                cases.append(parse_case(v))
-            k += 2
-            continue
+    pairs, others = optmod.take_valued(rest, ("--out", "--ref", "--case"))
+    for name, v in pairs:
+        if name == "--out":
+            out = v
+        elif name == "--ref":
+            ref = parse_case(v)
+        else:
+            cases.append(parse_case(v))
+    for a in others:
         if a == "--quick":
             quick = True
         elif a == "--fresh":
@@ -385,7 +379,6 @@ def main(argv):
             raise SceneError(f"{a}: unknown study option; {USAGE}")
         else:
             scene_path = a
-        k += 1
     out = out or ("out/study_quick" if quick else "docs/study")
     accuracy_cost(scene_path, out, quick=quick, reference=ref, cases=cases or None, fresh=fresh)
     return 0

@@ -167,11 +167,14 @@ class _Parser:
             return Fluid(self._default("fluid.viscosity", 1.0))
         return Fluid(t.number("viscosity", gt=0))
 
+    def _optional(self, top, name, keys, build):
+        """build(section table) for an optional section, None when the scene has none."""
+        t = self._section(top, name, keys)
+        return None if t is None else build(t)
+
     def _gravity(self, top):
-        t = self._section(top, "gravity", ("g",))
-        if t is None:
-            return None
-        return Gravity(t.vec3("g", required="the gravity vector [gx, gy, gz]", what="[gx, gy, gz]"))
+        return self._optional(top, "gravity", ("g",), lambda t: Gravity(
+            t.vec3("g", required="the gravity vector [gx, gy, gz]", what="[gx, gy, gz]")))
 
     def _discretization(self, top):
         t = self._section(top, "discretization", ("p",))
@@ -200,11 +203,9 @@ class _Parser:
         return Repulsion(t.number("radius", gt=0))
 
     def _accuracy(self, top):
-        t = self._section(top, "accuracy", ("error",))
-        if t is None:
-            return None
-        return Accuracy(t.number("error", required="the error the run must reach (a number in (0, 1), "
-                                 "e.g. 1e-3: position error over the vesicle length at the horizon)", gt=0, lt=1))
+        return self._optional(top, "accuracy", ("error",), lambda t: Accuracy(t.number(
+            "error", required="the error the run must reach (a number in (0, 1), e.g. 1e-3: position "
+            "error over the vesicle length at the horizon)", gt=0, lt=1)))
 
     def _output(self, top, time, stem):
         t = self._section(top, "output", ("file", "every")) or _Table({}, "output", ())
