@@ -75,7 +75,7 @@ if [ ! -e "$VENV" ]; then
   say "creating $VENV (layered on $ENV_DIR)"
   "$ROOT/tools/layered_venv.sh" "$VENV" "$ENV_DIR"
 fi
-src_hash="$(cat "$ROOT"/setup.py "$ROOT"/pyproject.toml "$ROOT"/vesflow/_kernels/*.pyx "$ROOT"/vesflow/_kernels/*.h 2>/dev/null | sha256sum | cut -c1-16)"
+src_hash="$(cat "$ROOT"/setup.py "$ROOT"/pyproject.toml "$ROOT"/vesflow/_kernels/*.pyx "$ROOT"/vesflow/_kernels/*.pxi "$ROOT"/vesflow/_kernels/*.h 2>/dev/null | sha256sum | cut -c1-16)"
 stamp="$ROOT/build/.kernels-$src_hash"
 # from / and without PYTHONPATH: where the .venv's python finds vesflow by itself
 where="$(cd / && env -u PYTHONPATH "$VENV/bin/python" -c 'import vesflow, os; print(os.path.dirname(os.path.dirname(vesflow.__file__)))' 2>/dev/null || true)"
