@@ -16,7 +16,8 @@ ALIASES = {"self_setup": "setup", "near_setup": "setup", "far_setup": "setup", "
            "far_own": "far", "pc_blocks": "setup",
            "pc_lu": "setup", "forces": "other", "rhs": "other", "correction": "other",
            "collision": "other", "output": "other", "quad_adapt": "other", "reparam": "repar",
-           "gather": "other"}     # gather: MPI exchanges of the vesicle partition (vesflow.parallel)
+           "gather": "other",     # gather: MPI exchanges of the vesicle partition (vesflow.parallel)
+           "wall_setup": "setup", "wall": "far"}   # a container's wall (vesflow.layerpot.wall)
 DETAIL = tuple(ALIASES)
 
 

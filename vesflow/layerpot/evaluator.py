@@ -323,10 +323,20 @@ class LayerPotentials:
         gl = g * (1.0 - self.lam)[:, None, None] if (g is not None and self.want_double) else None
         return self.own_ops.apply(f, gl)
 
-    def apply(self, f, g=None):
-        """Coefficients (N, 3, C) of sum_j S_j[f_j] + D_j[g_j] on every surface (pv for own D)."""
+    def apply(self, f, g=None, targets=None):
+        """Coefficients (N, 3, C) of sum_j S_j[f_j] + D_j[g_j] on every surface (pv for own D).
+        targets (a TargetSet of `target_set`, a container's wall points): also the values
+        there, returned as (coefficients, values (T, 3))."""
         with self.timers.stage("self"):
             u_self = self.self_part(f, g)
+        if targets is not None:
+            with self.timers.stage("wall"):
+                at = self.values_at(targets, f, g, u_self)
+            return self._apply_from(f, g, u_self), at
+        return self._apply_from(f, g, u_self)
+
+    def _apply_from(self, f, g, u_self):
+        """apply's far and near parts added to the self part u_self."""
         if self.far is None:
             return u_self
         with self.timers.stage("far_own"):
@@ -398,11 +408,33 @@ class LayerPotentials:
         w = near.weights
         return w[:, :1] * u0 + np.einsum("pl,plk->pk", w[:, 1:], blk[:, 1:]) - blk[:, 0]
 
+    def target_set(self, targets):
+        """The set-up of fixed free targets (T, 3) evaluated at every application (a container's
+        wall points, vesflow.layerpot.wall): the direct far field of every vesicle and the near
+        pairs of the targets within h_n of one.  One rank only (walls need one rank)."""
+        self._whole("target_set")
+        targets = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
+        tid = np.full(len(targets), -1, dtype=np.int64)
+        far = FarField(self.src, self.src_id, targets, tid, backend="direct", eps=self.settings.fmm_eps,
+                       double_layer=self.want_double)
+        return TargetSet(targets, far, self._near_setup(targets, tid))
+
+    def values_at(self, tset, f, g=None, u_self=None):
+        """sum_j S_j[f_j] + D_j[g_j] at the targets of a TargetSet, (T, 3); u_self: self_part(f, g)
+        if the caller has it."""
+        fw, gq = self._densities(f, g)
+        u_self = self.self_part(f, g) if u_self is None else u_self
+        vals = tset.far.evaluate(f_w=fw, nw=self.src_nw if gq is not None else None, g=gq)
+        return self._near_correct(vals, tset.near, fw, gq, u_self, g)
+
+    def _whole(self, what):
+        if not np.array_equal(self.idx, np.arange(self.N_total)):
+            raise ValueError(f"{what}: free targets need the layer potentials of all vesicles "
+                             f"on this process; this one holds {self.N} of {self.N_total} (a partition)")
+
     def evaluate_at(self, targets, f, g=None):
         """Values at free targets (T, 3) of sum_j S_j[f_j] + D_j[g_j], any distance (off-surface)."""
-        if not np.array_equal(self.idx, np.arange(self.N_total)):
-            raise ValueError("evaluate_at: free targets need the layer potentials of all vesicles "
-                             f"on this process; this one holds {self.N} of {self.N_total} (a partition)")
+        self._whole("evaluate_at")
         targets = np.ascontiguousarray(np.asarray(targets, dtype=float).reshape(-1, 3))
         tid = np.full(len(targets), -1, dtype=np.int64)
         fw, gq = self._densities(f, g)
@@ -460,6 +492,14 @@ class LayerPotentials:
         d = self.near.projection.signed_distance
         bad = d <= 0
         return self.near.pairs[bad], d[bad]
+
+
+class TargetSet:
+    """Fixed free targets of LayerPotentials.target_set: points (T, 3), their direct FarField and
+    near pairs (vesflow.layerpot.near.NearPairs or None)."""
+
+    def __init__(self, points, far, near):
+        self.points, self.far, self.near = points, far, near
 
 
 class _Oriented:

@@ -1,0 +1,79 @@
+"""The container's completed double layer (vesflow.layerpot.wall; docs/explanation/walls.md, "Tests").
+
+The interior Stokes problem with the velocity of a Stokeslet placed OUTSIDE the container as the
+wall data: the solution of (W.2) must reproduce that Stokeslet's velocity at interior points,
+far from the wall and within its near zone, with an error that falls with the wall degree."""
+import numpy as np
+import pytest
+
+from vesflow import shapes
+from vesflow.errors import SettingsError
+from vesflow.layerpot.wall import Wall
+
+X0 = np.array([0.5, -0.4, 3.4])        # the Stokeslet, outside the containers below
+F0 = np.array([0.3, -0.5, 0.8])
+
+
+def stokeslet(x, x0=X0, f=F0):
+    r = x - x0
+    d = np.linalg.norm(r, axis=-1)[..., None]
+    return (f / d + r * (r @ f)[..., None] / d ** 3) / (8 * np.pi)
+
+
+def container(kind, p):
+    if kind == "sphere":
+        return Wall(shapes.make_shape("sphere", p, radius=2.0), p)
+    return Wall(shapes.make_shape("ellipsoid", p, axes=(2.2, 1.8, 1.6), rotation=(10, 20, 30)), p)
+
+
+def interior_points(wall, depth):
+    """Points at `depth` (a fraction of h_w) inside the wall along the inner normal, and the centre region."""
+    g = wall.surface.geometry(wall.p)
+    X, n = g.X[0, ::5], g.normal[0, ::5]
+    return X - depth * wall.h * n
+
+
+def errors(kind, p):
+    wall = container(kind, p)
+    q = wall.solve(-wall.to_coeffs(-stokeslet(wall.points)))    # (W.2) with u_ves = -Stokeslet: u -> Stokeslet
+    out = {}
+    for name, x in (("centre", np.random.default_rng(1).uniform(-0.6, 0.6, (40, 3))),
+                    ("near 0.5 h", interior_points(wall, 0.5)), ("near 0.1 h", interior_points(wall, 0.1))):
+        u = wall.targets(x).apply(q)
+        out[name] = float(np.abs(u - stokeslet(x)).max() / np.abs(stokeslet(x)).max())
+    return out, abs(wall.flux(q))
+
+
+# the degrees of the table and the errors asserted at its first and last (relative to the largest
+# velocity at the points; the near zone's line extrapolation limits the points within h_w)
+DEGREES = {"sphere": (8, 12, 16), "ellipsoid": (12, 16, 24)}
+TOL = {"sphere": (0.5, 5e-4), "ellipsoid": (1e-2, 1e-6)}
+
+
+@pytest.mark.parametrize("kind", ["sphere", "ellipsoid"])
+def test_interior_stokes_problem_converges_with_wall_degree(kind):
+    table = {}
+    for p in DEGREES[kind]:
+        table[p], flux = errors(kind, p)
+        print(f"{kind} p = {p:2d}: " + ", ".join(f"{k} {v:.1e}" for k, v in table[p].items())
+              + f"; |int n.q| = {flux:.1e}")
+        assert flux < 1e-6                # the completion only fixes the flux of q: zero for flux-free data
+    lo, hi = DEGREES[kind][0], DEGREES[kind][-1]
+    assert max(table[lo].values()) < TOL[kind][0]
+    assert max(table[hi].values()) < TOL[kind][1]
+    assert max(table[hi].values()) < 0.01 * max(table[lo].values())
+
+
+def test_too_low_a_wall_degree_is_refused():
+    with pytest.raises(SettingsError, match=r"wall.p = 8: too low .* use wall.p >= 1[01]"):
+        container("ellipsoid", 8)
+
+
+def test_completion_makes_the_interior_operator_regular():
+    """Without the completion, 1/2 I + pv D_w (the fluid-side limit) has one near-zero singular
+    value (the range misses n); with it the smallest is O(1)."""
+    wall = container("ellipsoid", 12)
+    s_plain = np.linalg.svd(wall.matrix - wall.completion, compute_uv=False)
+    s_full = np.linalg.svd(wall.matrix, compute_uv=False)
+    print(f"smallest singular values: plain {s_plain[-2:]}, completed {s_full[-1]:.3f}")
+    assert s_plain[-1] < 1e-6 * s_plain[0] and s_full[-1] > 0.05
