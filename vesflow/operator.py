@@ -24,8 +24,11 @@ from .surface import Surface
 class StepOperator:
     """MatPython context: mult applies the left side above (geometry frozen at X^n)."""
 
-    def __init__(self, surface, params, dt, layer_potentials, q_force=None, coupling="implicit"):
+    def __init__(self, surface, params, dt, layer_potentials, q_force=None, coupling="implicit", wall=None):
+        """wall: a vesflow.layerpot.wall.WallCoupling of this geometry (a container), or None:
+        its density's 3 C_w unknowns then follow the vesicles' (docs/explanation/walls.md)."""
         self.surface, self.params, self.dt = surface, params, float(dt)
+        self.wall = wall
         self.lp = layer_potentials
         self.p = surface.p
         self.q_force = q_force or 2 * self.p
@@ -42,12 +45,31 @@ class StepOperator:
         self.gauge = np.zeros(self.N)
 
     # ------------------------------------------------------------------ pieces
+    @property
+    def n_wall(self):
+        """Unknowns of the wall density (0 without a wall)."""
+        return 0 if self.wall is None else self.wall.wall.n_unknowns
+
+    @property
+    def size(self):
+        """Length of the system's vectors: the vesicles' blocks, then the wall's density."""
+        return self.N * self.block + self.n_wall
+
     def split(self, x):
-        x = np.asarray(x).reshape(self.N, self.block)
+        """(u (N, 3, C), sigma (N, C)) of a vector (the wall's density, if any, is wall_part's)."""
+        x = np.asarray(x)[:self.N * self.block].reshape(self.N, self.block)
         return x[:, :3 * self.C].reshape(self.N, 3, self.C), x[:, 3 * self.C:]
 
-    def join(self, u, s):
-        return np.concatenate([u.reshape(self.N, 3 * self.C), s.reshape(self.N, self.C)], axis=1).ravel()
+    def wall_part(self, x):
+        """The wall density's coefficients (3 C_w,) of a vector."""
+        return np.asarray(x)[self.N * self.block:]
+
+    def join(self, u, s, q=None):
+        """The vector of u, sigma and (with a wall) the wall density q (zeros when None)."""
+        v = np.concatenate([u.reshape(self.N, 3 * self.C), s.reshape(self.N, self.C)], axis=1).ravel()
+        if self.wall is None:
+            return v
+        return np.concatenate([v, np.zeros(self.n_wall) if q is None else np.ravel(q)])
 
     def grid_vec(self, c):
         """Coefficients (N, 3, C) -> upsampled grid (N, npts, 3)."""
@@ -89,14 +111,20 @@ class StepOperator:
         du = self.Tf.synth_all(u)
         f = self.membrane_force(u, s, du=du)
         g = -u if self.lp.want_double else None
-        if self.coupling == "implicit":
+        rw = None
+        if self.wall is not None:            # (W.2) and D_w[q] on the vesicles (docs/explanation/walls.md)
+            q = self.wall_part(x)
+            lpv, at_wall = self.lp.apply(f, g, targets=self.wall.at_wall)
+            lpv = lpv + self.wall.on_vesicles(q)
+            rw = self.wall.wall.apply(q) + self.wall.wall.to_coeffs(at_wall)
+        elif self.coupling == "implicit":
             lpv = self.lp.apply(f, g)
         else:
             lpv = self.lp.self_part(f, g)
         r1 = self.params.alpha[:, None, None] * u - lpv
         r2 = self.divergence(u, du=du)
         r2[:, 0] += self.gauge * s[:, 0]
-        return self.join(r1, r2)
+        return self.join(r1, r2, rw)
 
     # ------------------------------------------------------------------ petsc4py Mat python interface
     def mult(self, mat, x, y):
@@ -105,7 +133,8 @@ class StepOperator:
 
     def view(self, mat, viewer):
         viewer.printfASCII(f"vesflow StepOperator: {self.N} vesicles, p = {self.p}, dt = {self.dt:g}, "
-                           f"coupling {self.coupling}, double layer {'on' if self.lp.want_double else 'off'}\n")
+                           f"coupling {self.coupling}, double layer {'on' if self.lp.want_double else 'off'}"
+                           + (f", wall of {self.n_wall} unknowns" if self.wall is not None else "") + "\n")
 
     # ------------------------------------------------------------------ dense self blocks (preconditioner)
     def force_matrices(self, v, q=None):

@@ -154,13 +154,20 @@ class _PerVesicle:
         return regularize_tension_mode(A, op.C)
 
     def apply(self, pc, x, y):
-        xa = x.getArray(readonly=True).reshape(self.op.N, self.op.block)
+        """The blocks' LU solves; with a container's wall, its rows by the LU of its self block
+        (1/2 I + pv D_w + N, vesflow.layerpot.wall.Wall: built once, walls do not move)."""
+        op = self.op
+        xall = x.getArray(readonly=True)
+        xa = xall[:op.N * op.block].reshape(op.N, op.block)
         out = np.empty_like(xa)
         if self.dtype != np.float64:       # float32 factors: float32 solves
             xa = xa.astype(self.dtype)
         for v, lu in enumerate(self.lu):
             out[v] = lu_solve(lu, xa[v], check_finite=False)
-        y.setArray(out.ravel())
+        if op.wall is None:
+            y.setArray(out.ravel())
+        else:
+            y.setArray(np.concatenate([out.ravel(), op.wall.wall.solve(op.wall_part(xall))]))
 
     def view(self, pc, viewer):
         viewer.printfASCII(f"vesflow {type(self).__name__}: {len(getattr(self, 'lu', []))} dense LU blocks, "

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
-from .shapes import make_shape
+from .shapes import euler_zyz, make_shape, unit_shape_coeffs
 from .surface import Surface
 
 # the shapes whose reduced volume is a shape parameter (sphere and ellipsoid are given by their axes)
@@ -52,6 +52,14 @@ def initial_coefficients(scene):
                             reduced_volume=v.reduced_volume if v.shape in REDUCED_VOLUME_SHAPES else None,
                             axes=v.axes)
     return out
+
+
+def wall_coefficients(wall):
+    """Position coefficients (3, C_w) of a [wall] container (vesflow.scene.model.Wall) at its
+    degree: the ellipsoid of its semi-axes, rotated about its centre and moved there."""
+    c = euler_zyz(wall.rotation) @ unit_shape_coeffs("ellipsoid", wall.p, axes=wall.axes)
+    c[:, 0] += np.sqrt(4.0 * np.pi) * np.asarray(wall.center, dtype=float)
+    return c
 
 
 def vesicle_params(scene):

@@ -11,11 +11,12 @@ import numpy as np
 
 from . import sph
 from .contact import Contacts
-from .errors import NumericalFailure
+from .errors import NumericalFailure, SettingsError
 from .layerpot.evaluator import Settings
+from .layerpot.wall import Wall
 from .parallel import make_partition
 from .setup_state import (initial_coefficients, physics, scene_period, vesicle_params,  # noqa: F401 (re-exported)
-                          wrap_into_cell)
+                          wall_coefficients, wrap_into_cell)
 from .stepper import Stepper
 from .stepping import (Adaptor, Checkpoints, Driver, Frames, PostStep, Progress, QuadratureAdaptor, State, StepLog,
                        make_integrator, next_output_time)  # noqa: F401 (next_output_time re-exported)
@@ -44,9 +45,13 @@ class Run(Driver):
         self.state = state
         self.part = make_partition(Surface(state.coeffs, self.p).centroid())   # the vesicles over the ranks
         self.post.part = self.part
+        self.wall = self._wall(scene, opts)
+        self.post.wall = self.wall
         self.stepper = Stepper(state.coeffs, self.p, vesicle_params(scene), physics(scene), settings,
                                coupling=opts["coupling"], timers=self.timers, part=self.part,
-                               pc_precision=opts["pc_precision"])
+                               pc_precision=opts["pc_precision"], wall=self.wall)
+        if self.wall is not None and checkpoint is None and writer is not None and hasattr(writer, "write_wall"):
+            writer.write_wall(self.wall.surface.points()[0], self.wall.surface.coeffs[0], self.wall.p)
         state.load(self.stepper)
         if checkpoint is None:
             S = Surface(state.coeffs, self.p)
@@ -84,6 +89,18 @@ class Run(Driver):
     q_near = property(lambda self: int(self.stepper.lp_settings.q_far))
     area0 = property(lambda self: self.post.area0, lambda self, a: setattr(self.post, "area0", a))
     volume0 = property(lambda self: self.post.volume0, lambda self, v: setattr(self.post, "volume0", v))
+
+    def _wall(self, scene, opts):
+        """The container of a scene with [wall] (its self operator and LU built here, once), None
+        without; a SettingsError before any step for what walls cannot do yet."""
+        if scene.wall is None:
+            return None
+        if self.part.size > 1:
+            raise SettingsError(f"[wall]: walls need one rank (this run has {self.part.size} MPI ranks)")
+        if opts["coupling"] != "implicit":
+            raise SettingsError(f"-ves_coupling {opts['coupling']}: a [wall] needs the implicit coupling")
+        with self.timers.stage("wall_setup"):
+            return Wall(wall_coefficients(scene.wall), scene.wall.p, near_factor=opts["near_factor"])
 
     @property
     def quad_errors(self):

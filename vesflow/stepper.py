@@ -22,6 +22,7 @@ from . import forces, repulsion, sph
 from .errors import ConvergenceError
 from .flows import background_velocity
 from .layerpot.evaluator import LayerPotentials, Settings
+from .layerpot.wall import WallCoupling
 from .operator import StepOperator
 from .parallel import Partition
 from .precond import PC_DTYPES, BlockJacobi, _PerVesicle
@@ -33,18 +34,20 @@ from .timing import Timers
 
 
 class Solution:
-    """Velocity u (N, 3, C) and tension sigma (N, C) coefficients, with the KSP record."""
+    """Velocity u (N, 3, C) and tension sigma (N, C) coefficients, with the KSP record; wall:
+    the container's density coefficients (3 C_w,) or None."""
 
-    def __init__(self, u, sigma, its, reason):
-        self.u, self.sigma, self.its, self.reason = u, sigma, its, reason
+    def __init__(self, u, sigma, its, reason, wall=None):
+        self.u, self.sigma, self.its, self.reason, self.wall = u, sigma, its, reason, wall
 
 
 class Stepper:
     """Holds the state (position coefficients) and advances it with first-order steps."""
 
     def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
-                 q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None):
+                 q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None, wall=None):
         self.coeffs = np.array(coeffs, dtype=float)
+        self.wall = wall            # a container (vesflow.layerpot.wall.Wall) or None
         # vesflow.parallel.Partition of the vesicles (None: this process owns every vesicle)
         self.part = part if part is not None else Partition.single(len(self.coeffs))
         self.params_local = params.take(self.part.idx)
@@ -150,8 +153,17 @@ class Stepper:
             cache.remove((key, lp))
         cache.append((key, lp))                 # most recently used last
         del cache[:-self.lp_cache_size]
-        op = StepOperator(lp.local, self.params_local, dt, lp, self.q_force, self.coupling)
+        op = StepOperator(lp.local, self.params_local, dt, lp, self.q_force, self.coupling, self._wall_coupling(lp))
         return lp, op
+
+    def _wall_coupling(self, lp):
+        """The container's coupling to the vesicles of lp's geometry (kept with lp), None without a wall."""
+        if self.wall is None:
+            return None
+        if getattr(lp, "wall_coupling", None) is None:
+            with self.timers.stage("wall_setup"):
+                lp.wall_coupling = WallCoupling(self.wall, lp)
+        return lp.wall_coupling
 
     def explicit_traction(self, surface, geo):
         """f_b(X^n) + f_g + f_r (3.13, with the near pairs of the solve's layer potentials) on the
@@ -176,20 +188,27 @@ class Stepper:
             b1 = Tp.analysis(np.moveaxis(uinf, -1, -2))
         f = op.coeffs_vec(self.explicit_traction(surface, op.geo))
         self.timers.stop("rhs")
-        b1 = b1 + lp.apply(f, None)
+        bw = None
+        if op.wall is not None:              # the wall rows: -u_ves of the explicit forces (W.2)
+            v, at_wall = lp.apply(f, None, targets=op.wall.at_wall)
+            b1, bw = b1 + v, op.wall.rhs(at_wall)
+        else:
+            b1 = b1 + lp.apply(f, None)
         if self.coupling == "explicit" and self.last is not None and lp.N_total > 1:
             # inter-vesicle terms of the previous solution moved to the right side
             fi = op.membrane_force(_mine(self.last.u, lp), _mine(self.last.sigma, lp))
             g = -_mine(self.last.u, lp) if lp.want_double else None
             b1 = b1 + lp.apply(fi, g) - lp.self_part(fi, g)
-        return op.join(b1, np.zeros((surface.n_vesicles, sph.n_coeffs(self.p))))
+        return op.join(b1, np.zeros((surface.n_vesicles, sph.n_coeffs(self.p))), bw)
 
     def correction_rhs(self, lp, op, displacement):
         """Right side S[B[e]] of the correction equation for a displacement e (N, 3, C):
         the single layer of its linearized bending force (3.12) on the frozen geometry."""
         f = forces.linearized_bending_force(op.geo, self.params_local.kappa, op.grid_vec(_mine(displacement, lp)))
-        b1 = lp.apply(op.coeffs_vec(f), None)
-        return op.join(b1, np.zeros((op.N, sph.n_coeffs(self.p))))
+        if op.wall is None:
+            return op.join(lp.apply(op.coeffs_vec(f), None), np.zeros((op.N, sph.n_coeffs(self.p))))
+        b1, at_wall = lp.apply(op.coeffs_vec(f), None, targets=op.wall.at_wall)
+        return op.join(b1, np.zeros((op.N, sph.n_coeffs(self.p))), op.wall.rhs(at_wall))
 
     def solve(self, dt, surface=None, displacement=None):
         """Velocity and tension at the current (or given) configuration for a step dt.
@@ -204,11 +223,11 @@ class Stepper:
         adapt_openmp(pairs=(surface.n_vesicles * 2 * q * (q + 1)) * (surface.n_vesicles * 2 * self.p * (self.p + 1)))
         lp, op = self._setup(surface, dt)
         self.lp_current = lp
-        A, ksp, b, x, r = self._solver(op, surface.n_vesicles * op.block)
+        A, ksp, b, x, r = self._solver(op, surface.n_vesicles * op.block + op.n_wall)
         b.setArray(self.rhs(op.surface, lp, op) if displacement is None else self.correction_rhs(lp, op, displacement))
         if (displacement is None and self.last is not None
                 and self.last.u.shape == (surface.n_vesicles, 3, sph.n_coeffs(self.p))):
-            x.setArray(op.join(_mine(self.last.u, lp), _mine(self.last.sigma, lp)))
+            x.setArray(op.join(_mine(self.last.u, lp), _mine(self.last.sigma, lp), self.last.wall))
         else:
             x.set(0.0)
         with self.timers.stage("setup"):
@@ -244,11 +263,12 @@ class Stepper:
                                    + residual_modes(op, r.getArray(), b.norm(), x.getArray()),
                                    reason=reason, iterations=its)
         u, s = op.split(x.getArray().copy())
+        q_wall = None if op.wall is None else op.wall_part(x.getArray()).copy()
         self.lp_last = lp
         with self.timers.stage("gather"):     # every rank keeps the velocity of every vesicle
             both = self.part.gather(np.concatenate([u.reshape(op.N, -1), s], axis=1))
         u, s = both[:, :3 * op.C].reshape(-1, 3, op.C), both[:, 3 * op.C:]
-        return Solution(u.copy(), s.copy(), its, reason)
+        return Solution(u.copy(), s.copy(), its, reason, q_wall)
 
     def _solver(self, op, n):
         """(Mat, KSP, b, x, r) of this stepper with op as the Mat's context: made and configured
@@ -256,7 +276,7 @@ class Stepper:
         increased so that the KSP sets its preconditioner up again (the PC context decides what
         it reuses).  A preconditioner to rebuild (restore_preconditioner) is rebuilt here."""
         from petsc4py import PETSc   # here, not at import: the caller initializes PETSc with its options first
-        sizes = (op.N * op.block, n)                  # the rows of this rank's vesicles
+        sizes = (op.size, n)                  # the rows of this rank's vesicles (and of a container's wall)
         if self._ksp is not None and self._ksp[5] == sizes:
             A, ksp = self._ksp[0], self._ksp[1]
             A.setPythonContext(sphere_constraints(op.surface, op, self.lock_spheres))
@@ -376,7 +396,7 @@ def _split_by_degree(op, a):
     """{(vesicle, "velocity" | "tension", degree n): norm} of a vector in the system's layout
     (the tension part of a residual holds the divergence rows)."""
     ns = sph.index_tables(op.p)[0][:op.C]
-    av = np.asarray(a).reshape(op.N, op.block)
+    av = np.asarray(a)[:op.N * op.block].reshape(op.N, op.block)
     vel = av[:, :3 * op.C].reshape(op.N, 3, op.C)
     ten = av[:, 3 * op.C:]
     out = {}

@@ -17,7 +17,7 @@ from .journal import FileInUse, JournaledFile
 from .layout import (FIELD_DTYPES, FORMAT_VERSION, FRAME_FIELDS, OPTIONAL_FIELDS, REASON_CODE, STEP_COLUMNS, STEP_REASONS,
                      TIMING_KEYS, chunks, grid_size, now, time_tol)
 from .reader import _checkpoint_name, _read_tree, read_checkpoint
-from .xdmf import XdmfFile, write_mesh
+from .xdmf import XdmfFile, grid_triangles, write_mesh
 
 
 class _Failed(Exception):
@@ -406,6 +406,25 @@ class OutputWriter:
         for fn in list(self.on_checkpoint):
             fn(state)
         return True
+
+    @_guarded
+    def write_wall(self, points, coefficients, p):
+        """The container's wall, once (it does not move): /wall/points (M_w, 3) on its p_w-grid,
+        /wall/triangles (as /mesh/triangles for one surface, vesflow.io.xdmf.grid_triangles),
+        /wall/coefficients (3, C_w) and the attribute p."""
+        self._doing = "writing the wall"
+        if "wall" in self._f:
+            del self._f["wall"]
+        g = self._f.create_group("wall")
+        g.attrs["p"] = int(p)
+        g.attrs["description"] = "the closed container ([wall]): fixed, no-slip (docs/explanation/walls.md)"
+        for name, data, desc in (
+                ("points", np.asarray(points, dtype=float), "the wall's p_w-grid points (grid order)"),
+                ("triangles", grid_triangles(int(p)), "triangles on the wall's points, counter-clockwise seen "
+                                                       "from outside"),
+                ("coefficients", np.asarray(coefficients, dtype=float), "the wall's position coefficients (3, C_w)")):
+            g.create_dataset(name, data=data).attrs["description"] = desc
+        self._flush()
 
     @_guarded
     def write_attrs(self, **attrs):

@@ -124,6 +124,28 @@ class Wall:
         return inside
 
 
+class WallCoupling:
+    """The wall and the vesicles of one geometry (vesflow.operator.StepOperator): the vesicles'
+    layers at the wall's p-grid points (LayerPotentials.target_set) and D_w at the vesicles'
+    p-grid points (WallTargets)."""
+
+    def __init__(self, wall, lp):
+        self.wall = wall
+        self.at_wall = lp.target_set(wall.points)
+        self.at_vesicle_points = wall.targets(lp.trg)
+        self.N, self.Tp = lp.N, lp.Tp
+
+    def on_vesicles(self, q):
+        """Coefficients (N, 3, C) of D_w[q] on the vesicles' surfaces."""
+        vals = self.at_vesicle_points.apply(q).reshape(self.N, -1, 3)
+        return self.Tp.analysis(np.moveaxis(vals, -1, -2))
+
+    def rhs(self, values):
+        """The wall rows' right side of (W.2), -u_ves, from the known part of the vesicles'
+        velocity at the wall points (T, 3)."""
+        return -self.wall.to_coeffs(values)
+
+
 class WallTargets:
     """D_w[q] at fixed targets (T, 3): the smooth rule over the wall's q_w grid, replaced within
     h_w of the wall by the near-singular value (docs/explanation/method.md, section 5.2: the line

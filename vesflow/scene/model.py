@@ -14,6 +14,9 @@ FLOW_TYPES = ("shear", "extensional", "poiseuille", "taylor_green")
 BICONCAVE_V_RANGE = (0.6, 0.7)     # the Evans-Fung profile scaled in height by 0.85 .. 1.3
 BICONCAVE_V_DEFAULT = 0.65
 P_RANGE = (2, 64)
+WALL_SHAPES = ("sphere", "ellipsoid")
+WALL_P_RANGE = (8, 64)       # [wall] p (a degree below 8 cannot resolve a container; see Wall.p_min)
+WALL_GAP = 0.05              # a vesicle stays this fraction of its radius (bounding sphere) away from a wall
 MAX_VESICLES = 100_000
 VESICLE_DEFAULTS = dict(shape="sphere", radius=1.0, center=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0),
                         bending_modulus=0.01, viscosity_contrast=1.0, excess_density=0.0)
@@ -83,6 +86,21 @@ class Fluid:
 class Domain:
     """Triply periodic cube [0, period)^3 (centres are taken modulo the period)."""
     period: float
+
+
+@dataclass(frozen=True)
+class Wall:
+    """[wall]: a closed container, fixed and no-slip, the vesicles inside it (docs/explanation/walls.md).
+    ``axes``: its semi-axes (a sphere of radius R: (R, R, R)), before the rotation (ZYZ Euler
+    angles, degrees) about its centre; ``p``: the degree of its spherical-harmonic surface."""
+    shape: str
+    axes: tuple[float, float, float]
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rotation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    p: int = 16
+
+    def rotation_matrix(self) -> np.ndarray:
+        return euler_zyz(self.rotation)
 
 
 @dataclass(frozen=True)
@@ -194,9 +212,10 @@ class Effects:
     repulsion: bool
     periodic: bool
     interactions: bool            # near and far field between vesicles (or periodic images)
+    wall: bool = False            # a closed container ([wall])
 
     NAMES = {"background_flow": "background flow", "gravity": "gravity", "double_layer": "double layer",
-             "repulsion": "repulsion", "periodic": "periodic", "interactions": "near/far field"}
+             "repulsion": "repulsion", "periodic": "periodic", "interactions": "near/far field", "wall": "wall"}
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
@@ -225,6 +244,7 @@ class Scene:
     vesicles: tuple[Vesicle, ...]
     lattices: tuple[Lattice, ...] = ()
     accuracy: Accuracy | None = None
+    wall: Wall | None = None
     text: str = field(default="", repr=False, compare=False)
     source: str = field(default="<string>", compare=False)
     defaulted: frozenset = field(default=frozenset(), repr=False, compare=False)
@@ -256,7 +276,7 @@ class Scene:
         return Effects(background_flow=flow_on, gravity=g_on,
                        double_layer=any(v.viscosity_contrast != 1.0 for v in ves),
                        repulsion=self.repulsion is not None, periodic=self.domain is not None,
-                       interactions=len(ves) > 1 or self.domain is not None)
+                       interactions=len(ves) > 1 or self.domain is not None, wall=self.wall is not None)
 
     def replace(self, **changes) -> "Scene":
         """New scene with dotted keys changed, e.g. ``replace(**{"time.horizon": 5.0})``;
@@ -325,6 +345,10 @@ class Scene:
             lines.append("domain   free space")
         if self.gravity is not None:
             lines.append("gravity  g = " + _fmt(list(self.gravity.g)))
+        if self.wall is not None:
+            w = self.wall
+            size = f"radius {_num(w.axes[0])}" if w.shape == "sphere" else "semi-axes " + _fmt(list(w.axes))
+            lines.append(f"wall     closed {w.shape} container, {size}, centre {_fmt(list(w.center))}, p = {w.p}")
         if self.repulsion is not None:
             lines.append(f"repulsion radius {_num(self.repulsion.radius)}")
         if self.accuracy is not None:

@@ -5,10 +5,13 @@ quadric pairs are decided exactly by the Perram-Wertheim contact function, bicon
 through their enclosing spheroid, then by dense sampling and inside tests (both ways)."""
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from ..errors import SceneError
 from .geometry import _euler_from_matrix
+from .model import WALL_GAP
 from .validate import _fail, _fmt, _num
 
 # ----------------------------------------------------------------------------------------
@@ -291,3 +294,46 @@ def _random_packing(ves0, origin, box, periodic, gap, rng, key, phi, rotate=True
     _random_packing.sweeps = sweeps
     eul = [_euler_from_matrix(Rk) for Rk in R]
     return c, eul
+
+
+def wall_distance(wall, points):
+    """Signed distances (P,) of points (P, 3) to a [wall] container (scene.model.Wall), negative
+    inside: exact for a sphere; for an ellipsoid the distance to dense samples of its surface
+    (192 x 256, in its body frame), signed by the inside test."""
+    x = (np.asarray(points, dtype=float) - np.asarray(wall.center)) @ wall.rotation_matrix()   # body frame
+    a = np.asarray(wall.axes)
+    if wall.shape == "sphere":
+        return np.linalg.norm(x, axis=-1) - a[0]
+    from scipy.spatial import cKDTree
+
+    samples = _ellipsoid_samples(tuple(a))
+    d, _ = cKDTree(samples).query(x)
+    return np.where(np.sum((x / a) ** 2, axis=-1) < 1.0, -d, d)
+
+
+@lru_cache(maxsize=8)
+def _ellipsoid_samples(axes, nt=192, nphi=256):
+    t = (np.arange(nt) + 0.5) * np.pi / nt
+    f = np.arange(nphi) * 2.0 * np.pi / nphi
+    tt, ff = np.meshgrid(t, f, indexing="ij")
+    return np.stack([axes[0] * np.sin(tt) * np.cos(ff), axes[1] * np.sin(tt) * np.sin(ff),
+                     axes[2] * np.cos(tt)], axis=-1).reshape(-1, 3)
+
+
+def check_inside_wall(vesicles, wall):
+    """SceneError unless every vesicle's bounding sphere lies inside the [wall] container with a
+    gap of WALL_GAP times its radius."""
+    c = np.array([v.center for v in vesicles], dtype=float)
+    rb = np.array([v.bounding_radius for v in vesicles])
+    gap = -wall_distance(wall, c) - rb
+    need = WALL_GAP * np.array([v.radius for v in vesicles])
+    bad = np.flatnonzero(gap < need)
+    if len(bad):
+        k = int(bad[0])
+        v = vesicles[k]
+        where = "outside the container" if gap[k] + rb[k] <= 0 else "crossing the wall or too close to it"
+        _fail(v.label or f"vesicle[{k}]", f"centre {_fmt(list(v.center))}, bounding radius {rb[k]:.4g}: {where} "
+              f"([wall] {wall.shape}, centre {_fmt(list(wall.center))}); its distance to the wall must be at least "
+              f"{WALL_GAP:g} of its radius ({need[k]:.3g}), is {gap[k]:.3g}"
+              + (f" ({len(bad)} vesicles)" if len(bad) > 1 else ""))
+

@@ -15,8 +15,8 @@ from ..errors import SceneError
 from .geometry import _unit_shape
 from .model import (Accuracy, BICONCAVE_V_DEFAULT, BICONCAVE_V_RANGE, DEFAULT_SCENE_TEXT, FLOW_TYPES, MAX_VESICLES, P_RANGE,
                     SHAPES, SPREAD_KEYS, VESICLE_DEFAULTS, Discretization, Domain, Flow, Fluid, Gravity, Lattice,
-                    Output, Repulsion, Scene, Time, Vesicle, _default_dt)
-from .packing import _random_packing, check_overlaps
+                    Output, Repulsion, Scene, Time, Vesicle, WALL_P_RANGE, WALL_SHAPES, Wall, _default_dt)
+from .packing import _random_packing, check_inside_wall, check_overlaps
 from .validate import _Table, _check_int, _check_number, _check_vec3, _error, _fail, _fmt, _num, _toml_type
 
 # ----------------------------------------------------------------------------------------
@@ -55,7 +55,7 @@ def default_scene() -> Scene:
 # The parser
 # ----------------------------------------------------------------------------------------
 _TOP = ("title", "flow", "fluid", "domain", "gravity", "discretization", "time", "repulsion",
-        "output", "vesicle", "lattice", "accuracy")
+        "output", "vesicle", "lattice", "accuracy", "wall")
 _VESICLE_KEYS = ("shape", "reduced_volume", "axes", "radius", "center", "rotation", "bending_modulus",
                  "viscosity_contrast", "excess_density")
 _LATTICE_KEYS = ("count", "spacing", "origin", "volume_fraction", "box", "seed", "orientation", "gap",
@@ -114,6 +114,7 @@ class _Parser:
         repulsion = self._repulsion(top)
         output = self._output(top, time, stem)
         accuracy = self._accuracy(top)
+        wall = self._wall(top, domain, flow)
         vesicles = self._vesicles(top)
         lattices = []
         for idx, raw in enumerate(self._array_of_tables(top, "lattice")):
@@ -126,9 +127,11 @@ class _Parser:
             _fail("vesicle", "missing; a scene needs at least one [[vesicle]] or [[lattice]] table")
         period = domain.period if domain is not None else None
         check_overlaps(vesicles, period)
+        if wall is not None:
+            check_inside_wall(vesicles, wall)
         return Scene(title=title, flow=flow, fluid=fluid, domain=domain, gravity=gravity, discretization=disc,
                      time=time, repulsion=repulsion, output=output, vesicles=tuple(vesicles),
-                     lattices=tuple(lattices), accuracy=accuracy, text=self.text, source=self.source,
+                     lattices=tuple(lattices), accuracy=accuracy, wall=wall, text=self.text, source=self.source,
                      defaulted=frozenset(self.defaulted))
 
     def _domain(self, top):
@@ -160,6 +163,34 @@ class _Parser:
                                                           "poiseuille flow (a number > 0)", gt=0))
         t.forbid("radius", "only used by flow type \"poiseuille\"")
         return Flow(kind, rate=rate)
+
+    def _wall(self, top, domain, flow):
+        """[wall]: a closed container (sphere of radius R, or ellipsoid of semi-axes [a, b, c])."""
+        t = self._section(top, "wall", ("shape", "radius", "axes", "center", "rotation", "p"))
+        if t is None:
+            return None
+        if domain is not None:
+            _fail("wall", "a closed container cannot lie in a periodic [domain] (the periodic channel and tube "
+                          "are not available yet); remove [domain] or [wall]")
+        if flow is not None:
+            _fail("flow.type", "a closed container ([wall]) is at rest and holds no background flow; remove "
+                               "[flow] (drive the vesicles by gravity or their own forces)", flow.type)
+        shape = t.choice("shape", WALL_SHAPES, required="the container's shape: " + " or ".join(WALL_SHAPES))
+        if shape == "sphere":
+            t.forbid("axes", "only used by wall shape \"ellipsoid\" (a sphere has radius)")
+            t.forbid("rotation", "only used by wall shape \"ellipsoid\"")
+            R = t.number("radius", required="the container's radius (a number > 0)", gt=0)
+            axes = (R, R, R)
+        else:
+            t.forbid("radius", "only used by wall shape \"sphere\" (an ellipsoid has axes)")
+            axes = t.vec3("axes", required="the container's semi-axes [a, b, c]", positive=True, what="[a, b, c]")
+        center = t.vec3("center", default=(0.0, 0.0, 0.0))
+        rotation = t.vec3("rotation", default=(0.0, 0.0, 0.0))
+        p = t.integer("p", default=None, ge=WALL_P_RANGE[0], le=WALL_P_RANGE[1])
+        if p is None:
+            p = self._default("wall.p", 16)
+        return Wall(shape, tuple(float(a) for a in axes), tuple(float(c) for c in center),
+                    tuple(float(r) for r in rotation), int(p))
 
     def _fluid(self, top):
         t = self._section(top, "fluid", ("viscosity",))

@@ -19,6 +19,7 @@ class PostStep:
         self.opts, self.p, self.part, self.timers, self.period = opts, p, part, timers, period
         self.area0, self.volume0 = area0, volume0
         self.q_near = q_near                 # () -> the current q_near (collision detection's grid)
+        self.wall = None                     # a container (vesflow.layerpot.wall.Wall): crossing it is a collision
         self.reparam_skipped = 0             # accepted steps whose reparameterization would have made contact
         self.reparam_iterated = 0            # accepted steps kept out of contact by the iterated projection
 
@@ -66,8 +67,10 @@ class PostStep:
         """Whether any grid point is on or behind another vesicle (this rank's points against
         every surface, the counts summed over the ranks)."""
         with self.timers.stage("collision"):
-            return self.part.sum(collision.contacts(Surface(coeffs, self.p), self.q_near(), self.period,
-                                                    part=self.part)) > 0
+            S = Surface(coeffs, self.p)
+            if self.wall is not None and not self.wall.contains(S.points().reshape(-1, 3)).all():
+                return True                  # a point on or beyond the container's wall
+            return self.part.sum(collision.contacts(S, self.q_near(), self.period, part=self.part)) > 0
 
     def wrap(self, state):
         """Periodic runs, at a step boundary: a vesicle whose centroid left the cell [0, L)^3
