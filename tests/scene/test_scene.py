@@ -110,7 +110,7 @@ def test_base_scene_values():
     assert v1.area == pytest.approx(4 * math.pi) and v1.volume == pytest.approx(v_expected * 4 / 3 * math.pi)
     eff = sc.effects()
     assert eff.as_dict() == dict(background_flow=True, gravity=True, double_layer=True, repulsion=True,
-                                 periodic=False, interactions=True)
+                                 periodic=False, interactions=True, wall=False)
     with pytest.raises(dataclasses.FrozenInstanceError):
         sc.time.dt = 1.0
     with pytest.raises(dataclasses.FrozenInstanceError):

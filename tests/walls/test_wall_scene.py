@@ -1,0 +1,88 @@
+"""[wall] scenes: the one-line errors before any work, a short `vesflow run` of runs/container.toml,
+the collision check against the wall (docs/explanation/walls.md)."""
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from tests.harness import ROOT
+from vesflow import shapes
+from vesflow.errors import SceneError
+from vesflow.layerpot.wall import Wall
+from vesflow.parallel import Partition
+from vesflow.scene import parse_scene
+from vesflow.setup_state import wall_coefficients
+from vesflow.stepping.poststep import PostStep
+from vesflow.timing import NullTimers
+
+SCENE = """
+[wall]
+shape = "sphere"
+radius = 3.0
+p = 12
+[[vesicle]]
+center = {center}
+"""
+
+
+@pytest.mark.parametrize("center,what", [("[5.0, 0.0, 0.0]", "outside the container"),
+                                         ("[0.0, 0.0, 2.5]", "crossing the wall or too close to it"),
+                                         ("[0.0, 1.97, 0.0]", "crossing the wall or too close to it")])
+def test_vesicle_outside_or_against_the_container_is_a_scene_error(center, what):
+    with pytest.raises(SceneError, match=rf"^vesicle\[0\]: centre .*: {what} \(\[wall\] sphere.* is -?[0-9.e-]+$"):
+        parse_scene(SCENE.format(center=center))
+    assert parse_scene(SCENE.format(center="[0.0, 1.9, 0.0]")).wall.axes == (3.0, 3.0, 3.0)
+
+
+def test_rotated_ellipsoid_container():
+    text = '[wall]\nshape = "ellipsoid"\naxes = [4.0, 2.0, 2.0]\nrotation = [0.0, 90.0, 0.0]\n[[vesicle]]\ncenter = {c}\n'
+    parse_scene(text.format(c="[0.0, 0.0, 2.5]"))                 # along the long axis (now z)
+    with pytest.raises(SceneError, match="outside the container"):
+        parse_scene(text.format(c="[2.5, 0.0, 0.0]"))
+    w = parse_scene(text.format(c="[0.0, 0.0, 0.0]")).wall
+    X = wall_coefficients(w)[:, 0] / np.sqrt(4 * np.pi)
+    assert np.allclose(X, 0.0)
+
+
+@pytest.mark.parametrize("extra,key", [("[domain]\nperiod = 10.0\n", "wall"),
+                                       ('[flow]\ntype = "shear"\nrate = 1.0\n', "flow.type"),
+                                       ("", "wall.p")])
+def test_wall_with_a_periodic_domain_a_flow_or_a_bad_degree(extra, key):
+    text = extra + SCENE.format(center="[0.0, 0.0, 0.0]")
+    if key == "wall.p":
+        text = text.replace("p = 12", "p = 4")
+    with pytest.raises(SceneError, match=rf"^{key}( = \S+)?: "):
+        parse_scene(text)
+
+
+def test_crossing_the_wall_is_a_collision():
+    p = 6
+    wall = Wall(wall_coefficients(parse_scene(SCENE.format(center="[0.0, 0.0, 0.0]")).wall), 12)
+    post = PostStep({}, p, None, None, None, NullTimers(), None, lambda: 2 * p)
+    post.wall = wall
+    post.part = Partition.single(1)
+    inside = shapes.make_shape("sphere", p, center=(0.0, 0.0, 1.8))[None]
+    crossing = shapes.make_shape("sphere", p, center=(0.0, 0.0, 2.2))[None]
+    beyond = shapes.make_shape("sphere", p, center=(0.0, 0.0, 6.0))[None]
+    assert not post.touching(inside)
+    assert post.touching(crossing) and post.touching(beyond)
+
+
+def test_container_run(tmp_path):
+    """runs/container.toml in its small variant: the wall is written once, the vesicles settle."""
+    out = tmp_path / "c.h5"
+    r = subprocess.run([sys.executable, "-m", "vesflow", "run", str(ROOT / "runs" / "container.toml"), "-o", str(out),
+                        "-options_file", str(ROOT / "runs" / "small.opts")],
+                       capture_output=True, text=True, timeout=600, env=dict(os.environ, OMP_NUM_THREADS="1"), cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with h5py.File(out) as f:
+        pts, tri = f["wall/points"][:], f["wall/triangles"][:]
+        assert f["wall"].attrs["p"] == 16 and pts.shape == (2 * 16 * 17, 3)
+        assert np.allclose(np.linalg.norm(pts, axis=1), 3.0, rtol=1e-12) and tri.max() == len(pts) - 1
+        c = f["frames/centroid"][:]
+    dz = c[-1, :, 2] - c[0, :, 2]
+    print(f"settled by {dz} in t = 0.15")
+    assert np.all(dz < 0) and np.all(np.abs(c[-1, :, :2] - c[0, :, :2]) < np.abs(dz)[:, None])
