@@ -146,7 +146,22 @@ def export_vtk(h5path, outdir, *, frames=None, prefix=None):
         name = f"{prefix}_{k:06d}.vtp"
         mesh.save(outdir / name, binary=True)
         entries.append((t, name))
+    wall = wall_polydata(h5path)
+    if wall is not None:                    # the container, once: PREFIX_wall.vtp beside the frames
+        wall.save(outdir / f"{prefix}_wall.vtp", binary=True)
     return write_pvd(outdir / f"{prefix}.pvd", entries)
 
 
-__all__ = ["frame_polydata", "export_vtk", "write_pvd", "surface_faces", "with_poles", "h5_frame_meshes"]
+def wall_polydata(h5path):
+    """pyvista.PolyData of a run's container (/wall, [wall]) on its p_w-grid points and poles, or
+    None without a wall."""
+    import h5py
+
+    with h5py.File(h5path, "r") as f:
+        if "wall" not in f:
+            return None
+        pts, p = f["wall/points"][:], int(f["wall"].attrs["p"])
+    return frame_polydata(pts[None], p)
+
+
+__all__ = ["frame_polydata", "export_vtk", "wall_polydata", "write_pvd", "surface_faces", "with_poles", "h5_frame_meshes"]

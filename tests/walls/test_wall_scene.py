@@ -72,7 +72,8 @@ def test_crossing_the_wall_is_a_collision():
 
 
 def test_container_run(tmp_path):
-    """runs/container.toml in its small variant: the wall is written once, the vesicles settle."""
+    """runs/container.toml in its small variant: the wall is written once (/wall, the XDMF's second
+    grid, PREFIX_wall.vtp of the VTK export), drawn translucent by vesflow render; the vesicles settle."""
     out = tmp_path / "c.h5"
     r = subprocess.run([sys.executable, "-m", "vesflow", "run", str(ROOT / "runs" / "container.toml"), "-o", str(out),
                         "-options_file", str(ROOT / "runs" / "small.opts")],
@@ -83,6 +84,24 @@ def test_container_run(tmp_path):
         assert f["wall"].attrs["p"] == 16 and pts.shape == (2 * 16 * 17, 3)
         assert np.allclose(np.linalg.norm(pts, axis=1), 3.0, rtol=1e-12) and tri.max() == len(pts) - 1
         c = f["frames/centroid"][:]
+    pv = pytest.importorskip("pyvista")
+    os.environ.setdefault("HDF5_USE_FILE_LOCKING", "FALSE")
+    r = pv.XdmfReader(str(out.with_suffix(".xmf")))         # ParaView's reader: the frames, then the wall
+    r.set_active_time_value(r.time_values[-1])
+    blocks = r.read()
+    assert len(blocks) == 2 and np.array_equal(np.asarray(blocks[1].points), pts)
+    from vesflow.vtk_export import export_vtk
+    export_vtk(out, tmp_path / "vtk")
+    wall = pv.read(tmp_path / "vtk" / "c_wall.vtp")
+    assert wall.n_points == len(pts) + 2 and wall.n_cells == 2 * len(pts)
+    from PIL import Image
+
+    from vesflow.render import render
+    res = render(out, movie=False, frames_dir=tmp_path / "png", frames=[len(c) - 1], color="none", size=(320, 240))
+    img = np.asarray(Image.open(res.frames[0]).convert("RGB"), dtype=float)
+    wall_like = np.all(np.abs(img - [205, 214, 224]) < 25, axis=-1).mean()     # the translucent wall over white
+    print(f"render: {wall_like:.2f} of the frame shows the wall")
+    assert wall_like > 0.15
     dz = c[-1, :, 2] - c[0, :, 2]
     print(f"settled by {dz} in t = 0.15")
     assert np.all(dz < 0) and np.all(np.abs(c[-1, :, :2] - c[0, :, :2]) < np.abs(dz)[:, None])

@@ -106,6 +106,7 @@ class XdmfFile:
         self._head = None
         self._fields = None
         self._size = None          # bytes of the file as last written
+        self._tail_text = None     # the end of the description as last written (_tail)
 
     @classmethod
     def beside(cls, h5_path):
@@ -139,6 +140,18 @@ class XdmfFile:
 
     _TAIL = "</Grid>\n</Domain>\n</Xdmf>\n"
 
+    def _tail(self, f):
+        """The end of the description: the temporal collection closed, then (a run with a
+        container, /wall) the wall's static grid, then the domain closed."""
+        if "wall" not in f:
+            return self._TAIL
+        h, P, T = self.h5name, f["wall/points"].shape[0], f["wall/triangles"].shape[0]
+        wall = (f'<Grid Name="wall" GridType="Uniform"><Topology TopologyType="Triangle" NumberOfElements="{T}">'
+                f'<DataItem Dimensions="{T} 3" NumberType="Int" Precision="8" Format="HDF">{h}:/wall/triangles'
+                f'</DataItem></Topology><Geometry GeometryType="XYZ"><DataItem Dimensions="{P} 3" NumberType="Float" '
+                f'Precision="8" Format="HDF">{h}:/wall/points</DataItem></Geometry></Grid>\n')
+        return "</Grid>\n" + wall + "</Domain>\n</Xdmf>\n"
+
     def sync(self, f):
         """Make the description match the frames of the open run file f."""
         fr = f["frames"]
@@ -149,26 +162,27 @@ class XdmfFile:
                 '<Grid Name="frames" GridType="Collection" CollectionType="Temporal">\n')
         times = [float(t) for t in fr["time"][:n]]
         on_disk = self._size is not None and self.path.exists() and self.path.stat().st_size == self._size
+        tail = self._tail(f)
         keep = 0
-        if fields == self._fields and head == self._head and on_disk:
+        if fields == self._fields and head == self._head and on_disk and tail == self._tail_text:
             for old, new in zip(self._times, times):      # frames kept as they were
                 if old != new:
                     break
                 keep += 1
-        self._head, self._fields = head, fields
+        self._head, self._fields, self._tail_text = head, fields, tail
         self._chunks = self._chunks[:keep] + [self._grid(k, times[k], shape, fields) for k in range(keep, n)]
         self._times = times
         if keep == 0:                      # rewrite: a reader never sees a partial file
             tmp = self.path.with_name(self.path.name + ".tmp")
-            tmp.write_text(head + "".join(self._chunks) + self._TAIL)
+            tmp.write_text(head + "".join(self._chunks) + tail)
             os.replace(tmp, self.path)
         else:                              # extend in place after the frames kept
             start = len(head) + sum(len(c) for c in self._chunks[:keep])
             with open(self.path, "r+") as fh:
                 fh.seek(start)
-                fh.write("".join(self._chunks[keep:]) + self._TAIL)
+                fh.write("".join(self._chunks[keep:]) + tail)
                 fh.truncate()
-        self._size = len(head) + sum(len(c) for c in self._chunks) + len(self._TAIL)
+        self._size = len(head) + sum(len(c) for c in self._chunks) + len(tail)
 
 
 def write_xdmf(h5_path, xmf_path=None):

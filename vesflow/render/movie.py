@@ -29,6 +29,8 @@ from .surfaces import UNITS, open_frames
 COLORS = ("tension", "speed", "none")
 _CMAPS = {"tension": "coolwarm", "speed": "viridis"}
 _SOLID = "#e0785a"
+_WALL = "#7f9fbf"      # a container's wall ([wall]), drawn translucent
+WALL_OPACITY = 0.18
 AUTO_FOLLOW_GAIN = 1.2      # auto camera: follow when it shows some frame this much larger than fit
 
 
@@ -143,9 +145,13 @@ def render(source, movie=None, frames_dir=None, color="tension", size=(960, 540)
     # pass 1: colour range and framing
     basis = cam.view_basis(*view)
     extents, lows, highs = [], [], []
+    wall = getattr(src, "wall", None)          # a container (run files with /wall): framed with the cells
     for pts, vals in src.scan(color):
         if camera != "fixed":
-            extents.append(cam.Extent(_drawn_points(pts, period, periodic), basis, size, layout.window))
+            drawn = _drawn_points(pts, period, periodic)
+            if wall is not None:
+                drawn = np.concatenate([np.reshape(drawn, (-1, 3)), wall[0]])
+            extents.append(cam.Extent(drawn, basis, size, layout.window))
         if vals is not None:
             v = np.asarray(vals)[np.isfinite(vals)]
             if v.size:
@@ -287,6 +293,13 @@ class _Painter:
                      if np.count_nonzero(corners[i] != corners[j]) == 1]
             lines = np.hstack([[2, i, j] for i, j in edges])
             self.pl.add_mesh(pv.PolyData(corners, lines=lines), color="gray", line_width=1.5, name="box")
+        wall = getattr(self.src, "wall", None)
+        if wall is not None:                   # the container, translucent: the cells stay visible
+            mesh = pv.PolyData.from_regular_faces(wall[0].copy(), wall[2])
+            mesh.point_data["Normals"] = wall[1]
+            mesh.point_data.active_normals_name = "Normals"
+            self.pl.add_mesh(mesh, color=_WALL, opacity=WALL_OPACITY, smooth_shading=True, name="wall",
+                             show_scalar_bar=False, ambient=0.3, diffuse=0.6, specular=0.1)
 
     def close(self):
         self.pl.close()

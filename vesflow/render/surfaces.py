@@ -184,6 +184,7 @@ class RunFrames:
         self.period = float(out.attrs.get("periodic_length", 0.0) or 0.0)
         self.fields = set(frame_fields(self.path))
         self.faces = surface_faces(1, self.q)
+        self.wall = run_wall(self.path)
 
     def read(self, positions, color):
         """FrameMesh of the selected frames at the given positions (into self.times)."""
@@ -285,6 +286,20 @@ def _pvd_values(mesh, color):
     raise ValueError(f"render: color={color!r} needs point data {color!r}"
                      + (" (or velocity)" if color == "speed" else "")
                      + f"; this run has {have or 'none'}. Use --color none or one of {have}")
+
+
+def run_wall(path):
+    """The container of a run file ([wall], /wall): (points (P, 3), normals (P, 3), faces (F, 3))
+    on its grid of degree 2 p_w (smooth when drawn), or None without a wall."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "wall" not in f:
+            return None
+        coeffs, p = f["wall/coefficients"][:], int(f["wall"].attrs["p"])
+    q = 2 * p
+    pts, nrm = surface_on_grid(coeffs[None], p, q)
+    return pts[0], nrm[0], surface_faces(1, q)
 
 
 def open_frames(path, frames=None, resolution=None):
