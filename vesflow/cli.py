@@ -296,6 +296,8 @@ def _run(rest, stop):
     if size > 1:          # vesicles over the ranks (vesflow.parallel); messages from rank 0
         global _QUIET
         _QUIET = not rank0
+        if sc.wall is not None:
+            raise SettingsError(f"[wall]: walls need one rank (this run has {size} MPI processes)")
         if size > sc.n_vesicles:
             raise SceneError(f"{size} MPI processes for {sc.n_vesicles} vesicles: each rank needs at least one "
                              f"vesicle; run at most {sc.n_vesicles} processes")

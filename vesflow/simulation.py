@@ -14,6 +14,7 @@ from .contact import Contacts
 from .errors import NumericalFailure, SettingsError
 from .layerpot.evaluator import Settings
 from .layerpot.wall import Wall
+from .layerpot.wall import check_degree as check_wall_degree
 from .parallel import make_partition
 from .setup_state import (initial_coefficients, physics, scene_period, vesicle_params,  # noqa: F401 (re-exported)
                           wall_coefficients, wrap_into_cell)
@@ -97,8 +98,6 @@ class Run(Driver):
             return None
         if self.part.size > 1:
             raise SettingsError(f"[wall]: walls need one rank (this run has {self.part.size} MPI ranks)")
-        if opts["coupling"] != "implicit":
-            raise SettingsError(f"-ves_coupling {opts['coupling']}: a [wall] needs the implicit coupling")
         with self.timers.stage("wall_setup"):
             return Wall(wall_coefficients(scene.wall), scene.wall.p, near_factor=opts["near_factor"])
 
@@ -115,7 +114,14 @@ class Run(Driver):
 
 
 def check_available(scene, opts):
-    """Refuse (exit status 3) what this version cannot run, before any output is created."""
+    """Refuse what this version cannot run, before any output is created: exit status 3
+    (NumericalFailure), or 2 for a [wall] it cannot take (SettingsError: explicit coupling, a
+    wall degree too low for the container)."""
+    if scene.wall is not None:
+        if opts["coupling"] != "implicit":
+            raise SettingsError(f"-ves_coupling {opts['coupling']}: a [wall] needs the implicit coupling")
+        w = scene.wall
+        check_wall_degree(Surface(wall_coefficients(w)[None], w.p), w.p, near_factor=opts["near_factor"])
     if scene.domain is not None and opts["far"] not in ("auto", "ewald"):
         raise NumericalFailure(f"-ves_far {opts['far']}: a periodic domain ([domain]) needs the Ewald far "
                                "field; use -ves_far ewald or auto")

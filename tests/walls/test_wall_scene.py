@@ -1,6 +1,7 @@
 """[wall] scenes: the one-line errors before any work, a short `vesflow run` of runs/container.toml,
 the collision check against the wall (docs/explanation/walls.md)."""
 import os
+import re
 import subprocess
 import sys
 
@@ -105,3 +106,21 @@ def test_container_run(tmp_path):
     dz = c[-1, :, 2] - c[0, :, 2]
     print(f"settled by {dz} in t = 0.15")
     assert np.all(dz < 0) and np.all(np.abs(c[-1, :, :2] - c[0, :, :2]) < np.abs(dz)[:, None])
+
+
+@pytest.mark.parametrize("how", ["two ranks", "explicit coupling"])
+def test_what_walls_cannot_do_is_refused_before_the_output_file(how, tmp_path):
+    out = tmp_path / "x.h5"
+    cmd = [sys.executable, "-m", "vesflow", "run", str(ROOT / "runs" / "container.toml"), "-o", str(out),
+           "-options_file", str(ROOT / "runs" / "small.opts")]
+    if how == "two ranks":
+        mpiexec = os.path.join(os.path.dirname(sys.executable), "mpiexec")
+        if not os.path.exists(mpiexec):
+            pytest.skip("no mpiexec beside the interpreter")
+        cmd, want = [mpiexec, "-n", "2"] + cmd, r"\[wall\]: walls need one rank \(this run has 2 MPI processes\)"
+    else:
+        cmd, want = cmd + ["-ves_coupling", "explicit"], "-ves_coupling explicit: a \\[wall\\] needs the implicit coupling"
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=dict(os.environ, OMP_NUM_THREADS="1"),
+                       cwd=ROOT)
+    assert r.returncode == 2 and not out.exists()
+    assert re.search(want, r.stderr), r.stderr[-500:]

@@ -40,6 +40,22 @@ WALL_ID = -2          # the source id of the wall's points (no target carries it
 NEAR_WIDTH = 0.45
 
 
+def check_degree(surface, p, q_far=None, near_factor=1.0):
+    """(h_w, width) of a wall surface of degree p, or a SettingsError naming the smallest valid
+    wall.p when its near zone h_w = near_factor sqrt(A_w / q_w) exceeds NEAR_WIDTH of its width."""
+    q_far = q_far or 2 * p
+    area = float(surface.area(q_far)[0])
+    pts = surface.points().reshape(-1, 3)
+    width = 2.0 * float(np.linalg.norm(pts - pts.mean(axis=0), axis=1).min())
+    h = float(nearmod.near_distance([area], q_far, near_factor)[0])
+    if h > NEAR_WIDTH * width:
+        p_min = int(np.ceil(near_factor ** 2 * area / (2.0 * (NEAR_WIDTH * width) ** 2)))
+        raise SettingsError(f"wall.p = {p}: too low for this container (its near zone h_w = {h:.3g} would "
+                            f"exceed {NEAR_WIDTH:g} of its width {width:.3g}, the line points of the "
+                            f"near-singular rule would leave the fluid); use wall.p >= {p_min}")
+    return h, width
+
+
 class Wall:
     """The container Gamma of degree p (position coefficients (3, C)), its operators (W.2)."""
 
@@ -61,13 +77,7 @@ class Wall:
         self.src_planar = stokes.planar(self.src, self.src_off)
         self.nw_planar = stokes.planar(self.src_nw, self.src_off)
         self.area = float(self.src_w.sum())
-        self.h = float(nearmod.near_distance([self.area], self.q_far, near_factor)[0])
-        self.width = 2.0 * float(np.linalg.norm(self.points - self.points.mean(axis=0), axis=1).min())
-        if self.h > NEAR_WIDTH * self.width:
-            p_min = int(np.ceil(near_factor ** 2 * self.area / (2.0 * (NEAR_WIDTH * self.width) ** 2)))
-            raise SettingsError(f"wall.p = {p}: too low for this container (its near zone h_w = {self.h:.3g} would "
-                                f"exceed {NEAR_WIDTH:g} of its width {self.width:.3g}, the line points of the "
-                                f"near-singular rule would leave the fluid); use wall.p >= {p_min}")
+        self.h, self.width = check_degree(self.surface, p, self.q_far, near_factor)
         self.D = SelfOperators(coeffs[None], p, self.q_self, want_single=False, want_double=True).double[0]
         self.completion = self._completion()
         self.matrix = 0.5 * np.eye(3 * self.C) + self.D + self.completion
