@@ -65,6 +65,29 @@ def repulsion_force(surface, lp, radius, q_force):
     return np.moveaxis(Tq.synth(coeffs), -2, -1)
 
 
+def wall_repulsion_force(surface, near_wall, radius, q_force):
+    """Traction f_r of (3.13) from a container's wall on the q_force grid, (N, npts_q, 3): for the
+    p-grid points within the wall's near zone (near_wall: vesflow.layerpot.wall.WallTargets of the
+    vesicles' p-grid points; index, signed distance, outward normal of each), d = X - X0 turned
+    into the fluid (a point beyond the wall is pushed back), |d| floored as for two vesicles."""
+    p, N = surface.p, surface.n_vesicles
+    Tq = sph.transform(p, q_force)
+    out = np.zeros((N, Tq.npts, 3))
+    dist = np.abs(near_wall.distance)
+    hit = dist < CUTOFF * radius
+    if radius <= 0 or not hit.any():
+        return out
+    R = float(radius)
+    dist = np.maximum(dist[hit], FLOOR * R)
+    d = -near_wall.normal[hit] * dist[:, None]                 # into the fluid (the normal points out of it)
+    mag = R * R / dist ** 3 * np.exp(-(dist / R) ** 2)
+    Tp = sph.transform(p)
+    fp = np.zeros((N * Tp.npts, 3))
+    np.add.at(fp, near_wall.index[hit], mag[:, None] * d)
+    coeffs = Tp.analysis(np.moveaxis(fp.reshape(N, Tp.npts, 3), -1, -2))
+    return np.moveaxis(Tq.synth(coeffs), -2, -1)
+
+
 def min_gap(lp):
     """Smallest signed distance over the near pairs of lp (negative: overlap; inf if none)."""
     pairs, proj = _projection(lp)

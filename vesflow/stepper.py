@@ -174,6 +174,9 @@ class Stepper:
             f = f + forces.gravity_force(geo, prm.drho, self.physics.gravity)
         if self.physics.repulsion_radius > 0:
             f = f + repulsion.repulsion_force(surface, self.lp_current, self.physics.repulsion_radius, self.q_force)
+            if self.wall is not None:          # and from a container's wall
+                f = f + repulsion.wall_repulsion_force(surface, self.lp_current.wall_coupling.at_vesicle_points,
+                                                       self.physics.repulsion_radius, self.q_force)
         return f
 
     def rhs(self, surface, lp, op):

@@ -124,3 +124,30 @@ def test_what_walls_cannot_do_is_refused_before_the_output_file(how, tmp_path):
                        cwd=ROOT)
     assert r.returncode == 2 and not out.exists()
     assert re.search(want, r.stderr), r.stderr[-500:]
+
+
+def test_repulsion_from_the_wall_pushes_a_vesicle_back():
+    """(3.13) against the wall: on a sphere 0.1 from the wall of a spherical container the force
+    points away from the wall and is the sum of the formula over its points near the wall; none
+    when the gap exceeds 5 R."""
+    from vesflow import repulsion
+    from vesflow.surface import Surface
+    p, R = 8, 0.05
+    wall = Wall(wall_coefficients(parse_scene(SCENE.format(center="[0.0, 0.0, 0.0]")).wall), 12)
+    for z, gap in ((1.9, 0.1), (1.0, 1.0)):
+        S = Surface(shapes.make_shape("sphere", p, center=(0.0, 0.0, z))[None], p)
+        X = S.points().reshape(-1, 3)
+        f = repulsion.wall_repulsion_force(S, wall.targets(X), R, 2 * p)
+        F = S.geometry(2 * p).integrate(f)[0]
+        d = 3.0 - np.linalg.norm(X, axis=1)                       # exact distances to the sphere r = 3
+        on = d < 5 * R
+        expect = -(R * R / d[on] ** 2 * np.exp(-(d[on] / R) ** 2))[:, None] * X[on] / np.linalg.norm(X[on], axis=1)[:, None]
+        print(f"gap {gap}: force {F}, {on.sum()} points within 5 R")
+        if gap > 5 * R:
+            assert not on.any() and np.abs(F).max() == 0.0
+        else:
+            assert F[2] < 0 and abs(F[0]) + abs(F[1]) < 1e-10 * abs(F[2])
+            # the force is filtered to degree p (as the vesicles'): its total against the p-grid sum of (3.13)
+            F_grid = (expect * S.geometry(p).dA.reshape(-1)[on][:, None]).sum(axis=0)
+            print(f"  total {F[2]:.6e}, p-grid sum of (3.13) {F_grid[2]:.6e}")
+            assert abs(F[2] / F_grid[2] - 1) < 1e-2

@@ -170,6 +170,7 @@ class WallTargets:
         pairs, tpos = nearmod.near_pairs_images(self.trg, tid, wall.src, wall.src_id, wall.src_off, wall.h)
         t = pairs[:, 0]
         self.index, self.distance = np.zeros(0, dtype=np.int64), np.zeros(0)
+        self.normal = np.zeros((0, 3))      # the wall's outward normal at each zone target's projection
         self.near = None
         if not len(t):
             return
@@ -182,7 +183,7 @@ class WallTargets:
         proj = nearmod.Projection(wall.surface.coeffs, wall.p, tpos, np.zeros(len(t), dtype=np.int64),
                                   wall.Tq.theta[it], wall.Tq.phi[jp])
         zone = np.abs(proj.signed_distance) < wall.h
-        self.index, self.distance = t[zone], proj.signed_distance[zone]
+        self.index, self.distance, self.normal = t[zone], proj.signed_distance[zone], proj.normal[zone]
         if zone_only or not zone.any():
             return
         for name in ("theta", "phi", "point", "normal", "signed_distance", "converged"):
