@@ -115,8 +115,9 @@ class StepOperator:
         if self.wall is not None:            # (W.2) and D_w[q] on the vesicles (docs/explanation/walls.md)
             q = self.wall_part(x)
             lpv, at_wall = self.lp.apply(f, g, targets=self.wall.at_wall)
-            lpv = lpv + self.wall.on_vesicles(q)
-            rw = self.wall.wall.apply(q) + self.wall.wall.to_coeffs(at_wall)
+            with self.lp.timers.stage("wall"):
+                lpv = lpv + self.wall.on_vesicles(q)
+                rw = self.wall.wall.apply(q) + self.wall.wall.to_coeffs(at_wall)
         elif self.coupling == "implicit":
             lpv = self.lp.apply(f, g)
         else:
