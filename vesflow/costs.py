@@ -92,6 +92,11 @@ class Estimate:
     calibration: str = "defaults"  # where the seconds per unit of work came from (vesflow.calibration)
     decisions: dict = None       # the rules' choices at t = 0 (`decisions`)
     ewald_best: tuple = None     # (rc, seconds) of the cutoff this calibration would find fastest (ewald)
+    wall_p: int = 0              # a container's wall ([wall]): its degree (0: no wall)
+    t_wall: float = 0.0          # its share of a GMRES iteration (`_wall_cost`)
+    t_wall_once: float = 0.0     # its operators, built once per run
+    mem_wall: int = 0            # their bytes
+    wall_near_points: int = 0    # vesicle grid points within its near zone at t = 0
 
     @property
     def t_step(self):
@@ -101,11 +106,12 @@ class Estimate:
 
     @property
     def t_iteration(self):
-        return self.t_forces + self.t_self + self.t_own + self.t_far + self.t_near
+        return self.t_forces + self.t_self + self.t_own + self.t_far + self.t_near + self.t_wall
 
     @property
     def memory(self):
-        return self.mem_self + self.mem_own + self.mem_pc_parts + self.mem_pc_max + self.mem_sources + self.mem_near
+        return (self.mem_self + self.mem_own + self.mem_pc_parts + self.mem_pc_max + self.mem_sources + self.mem_near
+                + self.mem_wall)
 
     def __str__(self):
         mib = lambda b: f"{b / 2**20:.1f} MiB"
@@ -126,7 +132,11 @@ class Estimate:
             f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x {_entry(self.pc_bytes)}, up to 3: {mib(self.mem_pc_max)}), "
             f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
             self._fits(),
-        ] + ([f"choices  {describe_decisions(self.decisions)} (fixed rules, the same on every machine)"]
+        ] + ([f"wall     p_w = {self.wall_p}: {ms(self.t_wall)} of each GMRES iteration (in the figure above; "
+              f"{self.wall_near_points} vesicle points within its near zone at t = 0), its operators "
+              f"~ {self.t_wall_once:.2f} s once and {mib(self.mem_wall)} (3 (3 C_w)^2 x 8 B: D_w, the wall block, "
+              f"its LU)"] if self.wall_p else [])
+          + ([f"choices  {describe_decisions(self.decisions)} (fixed rules, the same on every machine)"]
              if self.decisions else [])
           + ([self._ewald_line()] if self.ewald_best and self.t_far > 0 else []))
 
@@ -329,13 +339,39 @@ def estimate(scene, opts=None, near=True, calibration=None):
     t_near = max(pairs, 0) * NEAR_EVALS * Mq * cal.near_s_per_eval / max(1, threads) * (2 if dl else 1)
     t_setup = N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
+    wall = _wall_cost(scene, p, q, cal, threads, float(o.get("near_factor") or 1.0), dl) if scene.wall else {}
     return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
                     mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_pc_parts=mem_pc_parts, self_bytes=self_bytes,
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
                     solves_per_step=solves_per_step(o), threads=threads,
-                    mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen, ewald_best=ewald_best)
+                    mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen, ewald_best=ewald_best,
+                    **wall)
+
+
+def _wall_cost(scene, p, q, cal, threads, near_factor, double_layer):
+    """A container's share (docs/explanation/walls.md): per GMRES iteration the vesicles' layers
+    at the wall's M_w points (direct, N Mq M_w pairs, x 2 with the double layer), the wall's
+    smooth rule at the vesicles' points (Q_w N M pairs), the near blocks of the vesicle points
+    within h_w (9 Q_w evaluations each) and the wall block's GEMV; once: its self operator
+    (one vesicle's set-up at degree p_w) and LU; memory: D_w, the block and its LU."""
+    from .scene.geometry import _ellipsoid_area  # lazy: only scenes with a [wall]
+    from .scene.packing import wall_distance  # lazy: only scenes with a [wall]
+
+    w, N = scene.wall, scene.n_vesicles
+    pw = w.p
+    Cw, Mw, qw = (pw + 1) ** 2 - 1, 2 * pw * (pw + 1), 2 * pw
+    Qw, M, Mq = 2 * qw * (qw + 1), 2 * p * (p + 1), 2 * q * (q + 1)
+    h_w = float(near_distance([_ellipsoid_area(w.axes)], qw, near_factor)[0])
+    pts = Surface(initial_coefficients(scene), p).points().reshape(-1, 3)
+    n_near = int(np.count_nonzero(-wall_distance(w, pts) < h_w))
+    pairs = N * Mq * Mw * (2 if double_layer else 1) + Qw * N * M
+    mem = 3 * (3 * Cw) ** 2 * 8
+    t_it = (pairs * cal.direct_s_per_pair + n_near * NEAR_EVALS * Qw * cal.near_s_per_eval) / threads \
+        + (3 * Cw) ** 2 * 8 / cal.self_gemv_bytes_per_s
+    return {"wall_p": pw, "t_wall": t_it, "mem_wall": mem, "wall_near_points": n_near,
+            "t_wall_once": cal.self_setup_s[0] * (pw / 16) ** cal.self_setup_s[1]}
 
 
 def solves_per_step(o):

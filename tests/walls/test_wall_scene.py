@@ -151,3 +151,17 @@ def test_repulsion_from_the_wall_pushes_a_vesicle_back():
             F_grid = (expect * S.geometry(p).dA.reshape(-1)[on][:, None]).sum(axis=0)
             print(f"  total {F[2]:.6e}, p-grid sum of (3.13) {F_grid[2]:.6e}")
             assert abs(F[2] / F_grid[2] - 1) < 1e-2
+
+
+def test_check_estimates_the_wall():
+    """`vesflow check`'s estimate has the wall's share (vesflow.costs._wall_cost): its memory is
+    3 (3 C_w)^2 doubles and it counts the vesicle points within h_w = sqrt(A_w / 2 p_w)."""
+    from vesflow import costs
+    sc = parse_scene(SCENE.format(center="[0.0, 0.0, 0.0]"))
+    est = costs.estimate(sc)
+    Cw = 13 ** 2 - 1
+    assert est.wall_p == 12 and est.mem_wall == 3 * (3 * Cw) ** 2 * 8 and est.t_wall > 0
+    h_w = np.sqrt(4 * np.pi * 9 / 24)                               # 2.17: the unit sphere at the centre is 2 away
+    assert h_w > 2.0 and est.wall_near_points == 2 * 16 * 17        # every point of the p = 16 sphere
+    free = costs.estimate(parse_scene("[[vesicle]]\n"))
+    assert free.wall_p == 0 and free.t_wall == 0 and "wall" not in str(free) and "wall     p_w = 12" in str(est)
