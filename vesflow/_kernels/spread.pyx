@@ -62,6 +62,8 @@ def spread(const double[:, ::1] u, const double[:, ::1] c, double[:, :, :, ::1] 
     cdef long s, a, b, t, ci, base
     cdef int bad = 0
     cdef double v, vz, vzy
+    cdef double* row
+    cdef bint run
     cdef double* pb = &box[0, 0, 0, 0] if box.size else NULL
     if S == 0 or m == 0:
         return
@@ -72,6 +74,7 @@ def spread(const double[:, ::1] u, const double[:, ::1] c, double[:, :, :, ::1] 
             bad |= _weights(u[s, 2], nz, sz, Lz, w, beta, kz, iz)
             if bad:
                 break
+            run = ix[w - 1] == ix[0] + w - 1          # the x cells contiguous in the box (no wrap)
             for ci in range(m):
                 v = c[ci, s]
                 for a in range(w):
@@ -79,8 +82,13 @@ def spread(const double[:, ::1] u, const double[:, ::1] c, double[:, :, :, ::1] 
                     for b in range(w):
                         vzy = vz * ky[b]
                         base = ((ci * Lz + iz[a]) * Ly + iy[b]) * Lx
-                        for t in range(w):
-                            pb[base + ix[t]] += vzy * kx[t]
+                        if run:
+                            row = pb + base + ix[0]
+                            for t in range(w):
+                                row[t] += vzy * kx[t]
+                        else:
+                            for t in range(w):
+                                pb[base + ix[t]] += vzy * kx[t]
     if bad:
         raise ValueError("spread: a point's stencil leaves the grid box")
 
@@ -118,8 +126,13 @@ def interpolate(const double[:, ::1] u, const double[:, :, :, ::1] box, double[:
                     for b in range(w):
                         base = ((ci * Lz + ix[2 * MAXW + a]) * Ly + ix[MAXW + b]) * Lx
                         acc = 0.0
-                        for t in range(w):
-                            acc = acc + pb[base + ix[t]] * kx[t]
+                        if ix[w - 1] == ix[0] + w - 1:           # contiguous x cells
+                            base = base + ix[0]
+                            for t in range(w):
+                                acc = acc + pb[base + t] * kx[t]
+                        else:
+                            for t in range(w):
+                                acc = acc + pb[base + ix[t]] * kx[t]
                         accy = accy + acc * kx[MAXW + b]
                     accz = accz + accy * kx[2 * MAXW + a]
                 out[ci, s] = accz

@@ -394,8 +394,11 @@ class DistributedFourier:
         nx, ny, nz = self.n
         box = np.zeros((m, self.blen[2], self.blen[1], self.blen[0]))
         _spread.spread(self.us, comps, box, self.n, self.start, self.w, self.beta)
-        slab = np.empty((m, self.z1 - self.z0, ny, nx))
-        self._box_to_slabs(box, slab)
+        # one rank whose box is the whole grid from cell 0: the box is the slab
+        whole = self.c.size == 1 and list(self.blen) == list(self.n) and not any(self.start)
+        slab = box if whole else np.empty((m, self.z1 - self.z0, ny, nx))
+        if not whole:
+            self._box_to_slabs(box, slab)
         F = self._forward(slab)
         U = self._apply_multiplier(F, single, double)
         del F
@@ -403,7 +406,8 @@ class DistributedFourier:
         self._inverse(U, vel)
         del U
         vbox = box[:3]
-        self._slabs_to_box(vel, vbox)
+        if not whole:
+            self._slabs_to_box(vel, vbox)
         out = np.empty((3, self.ut.shape[0]))
         _spread.interpolate(self.ut, np.ascontiguousarray(vbox), out, self.n, self.start, self.w, self.beta,
                             self.threads)
