@@ -130,13 +130,21 @@ def test_grid_mode_is_checked(rng):
         ewald.EwaldSum(src, sid, trg, tid, period=4.0, tol=1e-6, grid="slab")
 
 
-def test_one_process_grid_bytes_are_the_slab_and_box(rng):
-    """One rank: the slab is the whole fine grid (m x n^3 doubles), the box covers the points'
-    stencils (periodic clusters across faces: the whole grid)."""
+def test_counted_grid_bytes_are_the_traced_peak_of_an_evaluation(rng):
+    """One rank, periodic clusters across the faces: the box is the whole fine grid and the
+    slab (counted once); the counted arrays (slab_bytes) against tracemalloc's peak of one
+    evaluation: within 25 %."""
+    import tracemalloc
     src, sid, trg, tid, f, nw, g = scene(rng, 4.0)
     es = ewald.EwaldSum(src, sid, trg, tid, period=4.0, tol=1e-8, threads=1, grid="distributed")
     d = es._dist
-    b = d.grid_bytes(3)
-    assert b["slab"] == 3 * 8 * math.prod(d.n)
-    assert b["box"] <= b["slab"]
-    assert all(v >= fs for v, fs in zip(d.n, [math.ceil(1.5 * k) for k in es.params.modes]))
+    assert d.blen == d.n and d.start == [0, 0, 0]
+    assert all(v >= math.ceil(1.5 * k) for v, k in zip(d.n, es.params.modes))
+    for dens, m in [(dict(f_w=f), 3), (dict(nw=nw, g=g), 6)]:
+        b = d.grid_bytes(m)
+        assert b["slab"] == 0 and b["box"] == 8 * math.prod(d.n)
+        tracemalloc.start()
+        es.fourier(**dens)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert 0.75 * b["total"] < peak < 1.25 * b["total"], (m, peak, b)

@@ -114,15 +114,29 @@ def _splits(n, size):
     return np.array([r * n // size for r in range(size + 1)], dtype=np.int64)
 
 
-def slab_bytes(m, n, blen, zl, yl, K):
-    """Bytes of one rank's grid arrays for m real source components on the fine grid n (x, y, z)
-    with a box of blen cells, zl z-planes of the slab and yl y-modes of the mode slab, K modes
-    per axis: the box (m real), the slab (m real), one component's real-to-complex transform,
-    the kept modes in the z-slab and the y-slab layouts (m complex each), the multiplier."""
+def slab_bytes(m, n, blen, zl, yl, K, size=2):
+    """Bytes of one rank's grid arrays at the peak of an evaluation with m real source
+    components on the fine grid n (x, y, z), a box of blen cells, zl z-planes of the slab, yl
+    y-modes of the mode slab, K modes per axis, size ranks: the box and the slab of one
+    component (real), and the largest of: one component's x, y transforms beside the
+    transpose's send buffer (all m components' kept modes), the send and receive buffers, the
+    received modes with the z-transforms (one component's grid and its transform), the
+    multiplier's input and output, the inverse's y, x transforms of one component beside the
+    velocity modes (complex); the multiplier (real) besides."""
     nx, ny, nz = n
     kx, ky, kz = K[0] // 2, K[1] - 1, K[2] - 1
-    out = {"box": 8 * m * int(np.prod(blen)), "slab": 8 * m * zl * ny * nx, "rfft": 16 * zl * ny * (nx // 2 + 1),
-           "kept": 16 * m * zl * ky * kx, "modes": 16 * m * nz * yl * kx, "multiplier": 8 * kz * yl * kx}
+    out = {"box": 8 * int(np.prod(blen)), "slab": 8 * zl * ny * nx}
+    send, recv, full, F = (16 * m * zl * ky * kx, 16 * m * nz * yl * kx, 16 * nz * yl * kx, 16 * m * kz * yl * kx)
+    if size == 1:
+        recv = send                               # the send buffer itself
+        send = 0
+    half, xy = 16 * zl * ny * (nx // 2 + 1), 16 * zl * ny * kx
+    back = 16 * 3 * zl * ky * kx                  # the three velocity components' modes, z-slab layout
+    out["transforms"] = max(max(send, recv) + half + xy + 16 * zl * ky * kx,  # forward x, y of one component
+                            send + recv, recv + 2 * full + F,                # transpose, z (one component)
+                            F + 16 * 3 * kz * yl * kx,                       # the multiplier
+                            back + half + xy + 8 * zl * ny * nx)             # inverse y, x of one component
+    out["multiplier"] = 8 * kz * yl * kx
     out["total"] = sum(out.values())
     return out
 
@@ -137,16 +151,19 @@ class _Comm:
     def allgather(self, x):
         return [x] if self.comm is None else self.comm.allgather(x)
 
-    def alltoallv(self, send, scounts, recv, rcounts):
-        """float64 Alltoallv (counts in doubles, rank order, contiguous blocks)."""
+    def alltoallv(self, send, scounts, rcounts):
+        """float64 Alltoallv (counts in doubles, rank order, contiguous blocks); returns the
+        received buffer (one process: ``send`` itself)."""
         if self.comm is None:
-            recv[:] = send
-            return
+            return send
         from mpi4py import MPI
+        scounts = np.asarray(scounts, dtype=np.int64)
+        rcounts = np.asarray(rcounts, dtype=np.int64)
+        recv = np.empty(int(rcounts.sum()))
         sd = np.concatenate([[0], np.cumsum(scounts)[:-1]]).astype(np.int64)
         rd = np.concatenate([[0], np.cumsum(rcounts)[:-1]]).astype(np.int64)
-        self.comm.Alltoallv([send, np.asarray(scounts, dtype=np.int64), sd, MPI.DOUBLE],
-                            [recv, np.asarray(rcounts, dtype=np.int64), rd, MPI.DOUBLE])
+        self.comm.Alltoallv([send, scounts, sd, MPI.DOUBLE], [recv, rcounts, rd, MPI.DOUBLE])
+        return recv
 
 
 class DistributedFourier:
@@ -231,7 +248,11 @@ class DistributedFourier:
     # ------------------------------------------------------------------ sizes
     def grid_bytes(self, m):
         """Bytes of this rank's grid arrays for m source components (:func:`slab_bytes`)."""
-        return slab_bytes(m, self.n, self.blen, self.z1 - self.z0, self.y1 - self.y0, self.K)
+        b = slab_bytes(m, self.n, self.blen, self.z1 - self.z0, self.y1 - self.y0, self.K, self.c.size)
+        if self.c.size == 1 and list(self.blen) == list(self.n) and not any(self.start):
+            b["total"] -= b["slab"]                   # the box is the slab
+            b["slab"] = 0
+        return b
 
     # ------------------------------------------------------------------ steps
     def _box_to_slabs(self, box, slab):
@@ -246,8 +267,7 @@ class DistributedFourier:
             st, ln = self.boxes[s]
             rshapes.append((m, self._planes[(s, r)][0].size, ln[1], ln[0]))
         rcounts = [int(np.prod(sh)) for sh in rshapes]
-        recv = np.empty(sum(rcounts))
-        c.alltoallv(np.concatenate(send) if send else np.empty(0), scounts, recv, rcounts)
+        recv = c.alltoallv(np.concatenate(send), scounts, rcounts)
         self.bytes_sent += 8 * (sum(scounts) - scounts[r])
         slab[...] = 0.0
         at = 0
@@ -277,8 +297,7 @@ class DistributedFourier:
             send.append(slab[np.ix_(np.arange(m), zl, gy, gx)].reshape(-1))
         scounts = [a.size for a in send]
         rcounts = [m * self._planes[(r, o)][0].size * self.blen[1] * self.blen[0] for o in range(c.size)]
-        recv = np.empty(sum(rcounts))
-        c.alltoallv(np.concatenate(send), scounts, recv, rcounts)
+        recv = c.alltoallv(np.concatenate(send), scounts, rcounts)
         self.bytes_sent += 8 * (sum(scounts) - scounts[r])
         at = 0
         for o in range(c.size):
@@ -287,129 +306,139 @@ class DistributedFourier:
                 box[:, j] = recv[at:at + rcounts[o]].reshape(m, j.size, self.blen[1], self.blen[0])
             at += rcounts[o]
 
-    def _forward(self, slab):
-        """Kept modes of the real z-slabs (m, zl, ny, nx) -> this rank's y-slab of the modes
-        (m, kept z, local y, kept x), unnormalized ``sum_j G_j e^{-2 pi i m.j / n}``."""
-        c, m = self.c, slab.shape[0]
-        nx, ny, nz = self.n
-        zl = self.z1 - self.z0
-        ky = np.mod(self.my, ny)
-        kx = self.mx.size
-        kept = np.empty((m, zl, self.my.size, kx), dtype=np.complex128)
-        for a in range(m):
-            h = scipy.fft.rfft(slab[a], axis=-1, workers=self.threads)[..., :kx]
-            h = scipy.fft.fft(h, axis=1, workers=self.threads, overwrite_x=True)
-            kept[a] = h[:, ky]
-        del h
-        # transpose: y-mode block of owner o, all of this rank's z planes
-        send = np.concatenate([np.ascontiguousarray(kept[:, :, self.yoff[o]:self.yoff[o + 1]]).view(np.float64).reshape(-1)
-                               for o in range(c.size)])
-        scounts = [2 * m * zl * int(self.yoff[o + 1] - self.yoff[o]) * kx for o in range(c.size)]
-        yl = self.y1 - self.y0
-        rcounts = [2 * m * int(self.zoff[s + 1] - self.zoff[s]) * yl * kx for s in range(c.size)]
-        recv = np.empty(sum(rcounts))
-        del kept
-        c.alltoallv(send, scounts, recv, rcounts)
-        self.bytes_sent += 8 * (sum(scounts) - scounts[c.rank])
-        del send
-        full = np.empty((m, nz, yl, kx), dtype=np.complex128)
-        at = 0
-        for s in range(c.size):
-            z0, z1 = self.zoff[s], self.zoff[s + 1]
-            full[:, z0:z1] = recv[at:at + rcounts[s]].view(np.complex128).reshape(m, z1 - z0, yl, kx)
-            at += rcounts[s]
-        del recv
-        full = scipy.fft.fft(full, axis=1, workers=self.threads, overwrite_x=True)
-        return np.ascontiguousarray(full[:, np.mod(self.mz, nz)])
+    def _segments(self, buf, q, zcounts, ycounts):
+        """Views of the complex buffer ``buf`` as one (q, zcounts[r], ycounts[r], kept x) block per
+        rank r (the blocks of a transpose, rank order)."""
+        kx, out, at = self.mx.size, [], 0
+        for zc, yc in zip(zcounts, ycounts):
+            out.append(buf[at:at + q * zc * yc * kx].reshape(q, zc, yc, kx))
+            at += q * zc * yc * kx
+        return out
 
-    def _inverse(self, U, slab):
-        """This rank's y-slab of modes U (3, kept z, local y, kept x) -> real z-slabs of
-        ``sum_m U_m e^{2 pi i m.j / n}`` into slab (3, zl, ny, nx)."""
+    def _forward(self, comps, box, slab, whole):
+        """Spread each source component, its planes to the owners' slabs, its kept modes along
+        x and y (real-to-complex x, complex y; one component's slab at a time), the transpose to
+        y-slabs of the modes, the FFT along z: this rank's modes (m, kept z, local y, kept x),
+        unnormalized ``sum_j G_j e^{-2 pi i m.j / n}``."""
+        c, m = self.c, comps.shape[0]
+        nx, ny, nz = self.n
+        zl, yl, kx = self.z1 - self.z0, self.y1 - self.y0, self.mx.size
+        ky = np.mod(self.my, ny)
+        ycount = np.diff(self.yoff)
+        zcount = np.diff(self.zoff)
+        send = np.empty(m * zl * self.my.size * kx, dtype=np.complex128)
+        blocks = self._segments(send, m, [zl] * c.size, ycount)
+        for a in range(m):
+            box.fill(0.0)
+            _spread.spread(self.us, np.ascontiguousarray(comps[a:a + 1]), box, self.n, self.start, self.w, self.beta)
+            if not whole:
+                self._box_to_slabs(box, slab)
+            h = scipy.fft.rfft(slab[0], axis=-1, workers=self.threads)[..., :kx]
+            h = scipy.fft.fft(h, axis=1, workers=self.threads, overwrite_x=True)[:, ky]
+            for o in range(c.size):
+                blocks[o][a] = h[:, self.yoff[o]:self.yoff[o + 1]]
+            del h
+        recv = c.alltoallv(send.view(np.float64), [2 * b.size for b in blocks],
+                           2 * m * zcount * yl * kx).view(np.complex128)
+        self.bytes_sent += 16 * (send.size - blocks[c.rank].size)
+        del send, blocks
+        rblocks = self._segments(recv, m, zcount, [yl] * c.size)
+        F = np.empty((m, self.mz.size, yl, kx), dtype=np.complex128)
+        kz = np.mod(self.mz, nz)
+        for a in range(m):
+            full = np.empty((nz, yl, kx), dtype=np.complex128)
+            for s_ in range(c.size):
+                full[self.zoff[s_]:self.zoff[s_ + 1]] = rblocks[s_][a]
+            F[a] = scipy.fft.fft(full, axis=0, workers=self.threads, overwrite_x=True)[kz]
+            del full
+        return F
+
+    def _inverse(self, U, box, slab, whole):
+        """This rank's modes U (3, kept z, local y, kept x) -> real z-slabs of
+        ``sum_m U_m e^{2 pi i m.j / n}``, one component at a time, its planes back to the boxes
+        and interpolated at this rank's targets: (3, T)."""
         c = self.c
         nx, ny, nz = self.n
         kx, yl, zl = self.mx.size, self.y1 - self.y0, self.z1 - self.z0
         q = U.shape[0]
-        full = np.zeros((q, nz, yl, kx), dtype=np.complex128)
-        full[:, np.mod(self.mz, nz)] = U
-        full = scipy.fft.ifft(full, axis=1, norm="forward", workers=self.threads, overwrite_x=True)
-        send = np.concatenate([np.ascontiguousarray(full[:, self.zoff[o]:self.zoff[o + 1]]).view(np.float64).reshape(-1)
-                               for o in range(c.size)])
-        del full
-        scounts = [2 * q * int(self.zoff[o + 1] - self.zoff[o]) * yl * kx for o in range(c.size)]
-        rcounts = [2 * q * zl * int(self.yoff[s + 1] - self.yoff[s]) * kx for s in range(c.size)]
-        recv = np.empty(sum(rcounts))
-        c.alltoallv(send, scounts, recv, rcounts)
-        self.bytes_sent += 8 * (sum(scounts) - scounts[c.rank])
-        del send
-        kept = np.empty((q, zl, self.my.size, kx), dtype=np.complex128)
-        at = 0
-        for s in range(c.size):
-            y0, y1 = self.yoff[s], self.yoff[s + 1]
-            kept[:, :, y0:y1] = recv[at:at + rcounts[s]].view(np.complex128).reshape(q, zl, y1 - y0, kx)
-            at += rcounts[s]
-        del recv
+        ycount = np.diff(self.yoff)
+        zcount = np.diff(self.zoff)
+        send = np.empty(q * nz * yl * kx, dtype=np.complex128)
+        blocks = self._segments(send, q, zcount, [yl] * c.size)
+        kz = np.mod(self.mz, nz)
+        for a in range(q):
+            full = np.zeros((nz, yl, kx), dtype=np.complex128)
+            full[kz] = U[a]
+            full = scipy.fft.ifft(full, axis=0, norm="forward", workers=self.threads, overwrite_x=True)
+            for o in range(c.size):
+                blocks[o][a] = full[self.zoff[o]:self.zoff[o + 1]]
+            del full
+        recv = c.alltoallv(send.view(np.float64), [2 * b.size for b in blocks],
+                           2 * q * zl * ycount * kx).view(np.complex128)
+        self.bytes_sent += 16 * (send.size - blocks[c.rank].size)
+        del send, blocks
+        rblocks = self._segments(recv, q, [zl] * c.size, ycount)
         ky = np.mod(self.my, ny)
+        out = np.empty((q, self.ut.shape[0]))
         for a in range(q):
             h = np.zeros((zl, ny, nx // 2 + 1), dtype=np.complex128)
-            h[:, ky, :kx] = kept[a]
+            for s_ in range(c.size):
+                h[:, ky[self.yoff[s_]:self.yoff[s_ + 1]], :kx] = rblocks[s_][a]
             h[:, :, :kx] = scipy.fft.ifft(h[:, :, :kx], axis=1, norm="forward", workers=self.threads)
-            slab[a] = scipy.fft.irfft(h, n=nx, axis=-1, norm="forward", workers=self.threads)
+            slab[0] = scipy.fft.irfft(h, n=nx, axis=-1, norm="forward", workers=self.threads, overwrite_x=True)
+            del h
+            if not whole:
+                self._slabs_to_box(slab, box)
+            _spread.interpolate(self.ut, box, out[a:a + 1], self.n, self.start, self.w, self.beta, self.threads)
+        return out
 
     def _apply_multiplier(self, F, single, double):
         """U (3, ...) from the modes F of the source components (f_0..2 if ``single``, then
-        S_00, S_11, S_22, S_01, S_02, S_12 if ``double``): module docstring."""
+        S_00, S_11, S_22, S_01, S_02, S_12 if ``double``): module docstring.  In chunks of
+        z-planes (the temporaries stay small)."""
         kx, ky, kz = self._k
         a = kx[None, None, :]
         b = ky[None, :, None]
-        cz = kz[:, None, None]
-        kk = a * a + b * b + cz * cz
         U = np.zeros((3,) + F.shape[1:], dtype=np.complex128)
-        o = 0
-        if single:
-            kf = a * F[0] + b * F[1] + cz * F[2]
-            U[0] = kk * F[0] - a * kf
-            U[1] = kk * F[1] - b * kf
-            U[2] = kk * F[2] - cz * kf
-            del kf
-            o = 3
-        if double:
-            s00, s11, s22, s01, s02, s12 = (F[o + i] for i in range(6))
-            q0 = s00 * a + s01 * b + s02 * cz
-            q1 = s01 * a + s11 * b + s12 * cz
-            q2 = s02 * a + s12 * b + s22 * cz
-            tr = s00 + s11 + s22
-            ksk = a * q0 + b * q1 + cz * q2
-            U[0] += 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
-            U[1] += 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
-            U[2] += 1j * (kk * (2.0 * q2 + cz * tr) - 2.0 * cz * ksk)
-        U *= self._ps
+        step = max(1, (1 << 16) // max(1, F.shape[2] * F.shape[3]))
+        for i0 in range(0, F.shape[1], step):
+            sl = slice(i0, i0 + step)
+            f, u = F[:, sl], U[:, sl]
+            cz = kz[sl, None, None]
+            kk = a * a + b * b + cz * cz
+            o = 0
+            if single:
+                kf = a * f[0] + b * f[1] + cz * f[2]
+                u[0] = kk * f[0] - a * kf
+                u[1] = kk * f[1] - b * kf
+                u[2] = kk * f[2] - cz * kf
+                o = 3
+            if double:
+                s00, s11, s22, s01, s02, s12 = (f[o + i] for i in range(6))
+                q0 = s00 * a + s01 * b + s02 * cz
+                q1 = s01 * a + s11 * b + s12 * cz
+                q2 = s02 * a + s12 * b + s22 * cz
+                tr = s00 + s11 + s22
+                ksk = a * q0 + b * q1 + cz * q2
+                u[0] += 1j * (kk * (2.0 * q0 + a * tr) - 2.0 * a * ksk)
+                u[1] += 1j * (kk * (2.0 * q1 + b * tr) - 2.0 * b * ksk)
+                u[2] += 1j * (kk * (2.0 * q2 + cz * tr) - 2.0 * cz * ksk)
+            u *= self._ps[sl]
         return U
 
     def apply(self, comps, single, double):
         """``u^F`` (T, 3) at this rank's targets from the real source components ``comps``
         (m, S) of this rank's sources (single layer f w: 3 rows; double layer: the 6 of sym6;
-        both: 9)."""
+        both: 9).  One component's box and slab at a time (module docstring)."""
         comps = np.ascontiguousarray(comps, dtype=np.float64)
-        m = comps.shape[0]
         nx, ny, nz = self.n
-        box = np.zeros((m, self.blen[2], self.blen[1], self.blen[0]))
-        _spread.spread(self.us, comps, box, self.n, self.start, self.w, self.beta)
+        box = np.empty((1, self.blen[2], self.blen[1], self.blen[0]))
         # one rank whose box is the whole grid from cell 0: the box is the slab
         whole = self.c.size == 1 and list(self.blen) == list(self.n) and not any(self.start)
-        slab = box if whole else np.empty((m, self.z1 - self.z0, ny, nx))
-        if not whole:
-            self._box_to_slabs(box, slab)
-        F = self._forward(slab)
+        slab = box if whole else np.empty((1, self.z1 - self.z0, ny, nx))
+        F = self._forward(comps, box, slab, whole)
         U = self._apply_multiplier(F, single, double)
         del F
-        vel = slab[:3]
-        self._inverse(U, vel)
-        del U
-        vbox = box[:3]
-        if not whole:
-            self._slabs_to_box(vel, vbox)
-        out = np.empty((3, self.ut.shape[0]))
-        _spread.interpolate(self.ut, np.ascontiguousarray(vbox), out, self.n, self.start, self.w, self.beta,
-                            self.threads)
+        out = self._inverse(U, box, slab, whole)
         self.evaluations += 1
         return np.ascontiguousarray(out.T)
