@@ -343,7 +343,12 @@ class EwaldSum:
     sum of the module docstring (the Fourier part's share of the own vesicle at its given
     position); the caller removes it (vesflow.layerpot.own_smooth).  "smooth" needs every
     vesicle's extent plus rc below the period (:func:`own_extent_ok`); ``own_skip`` = (sources
-    per vesicle, mean area) for the cost model (:func:`choose_params`)."""
+    per vesicle, mean area) for the cost model (:func:`choose_params`).
+
+    ``grid`` (-ves_ewald_grid): "replicated", the Fourier part by the NUFFTs on the whole
+    mode grid (with ``spread``: the grid summed over the ranks); "distributed", on a fine grid
+    in z-slabs over the ranks of ``spread``'s partition (:mod:`vesflow.layerpot.ewald_grid`;
+    the same sum to the tolerance)."""
 
     def __init__(self, src, src_id, trg, trg_id, tol=1e-8, period=None, params=None, nufft=None,
                  threads=None, double_layer=False, spread=None, own="subtract", own_skip=None, grid="replicated"):
