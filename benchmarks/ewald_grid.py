@@ -21,7 +21,8 @@ arrays: every distributed array, not ducc0's own), the bytes sent per rank per e
 (distributed: the box planes and transposes; replicated: the Allreduce of the mode grid,
 counted as 2 (P - 1) / P of it, the ring algorithm), and (without --memory) the CPU and wall
 seconds of the Fourier part and the whole sum (best of --repeat, largest over the ranks), and
-the largest difference of the two paths' velocities.
+the largest difference of the two paths' velocities.  (mpich's ranks busy-poll while they
+wait in a collective: a rank's CPU time includes its waits for the slowest rank.)
 """
 import argparse
 import dataclasses
@@ -40,9 +41,12 @@ from vesflow.layerpot import ewald  # noqa: E402
 from vesflow.parallel import make_partition, world_comm  # noqa: E402
 
 
-def timed(fn, repeat):
+def timed(fn, repeat, comm):
+    """(result, (wall, CPU) seconds of the repeat of least CPU time); the ranks start each
+    repeat together (a Barrier outside the timing)."""
     best = None
     for _ in range(repeat):
+        comm.Barrier()
         w, c = time.perf_counter(), time.process_time()
         out = fn()
         t = (time.perf_counter() - w, time.process_time() - c)
@@ -108,8 +112,8 @@ def main(argv=None):
         row = {"grid_bytes": gb, "traced": peak, "sent": sent, "extra": extra, "u": u}
         if not a.memory:
             comm.Barrier()
-            _, tf = timed(lambda: (es.fourier(**dens), comm.Barrier()), a.repeat)
-            _, te = timed(lambda: (es.evaluate(**dens), comm.Barrier()), a.repeat)
+            _, tf = timed(lambda: es.fourier(**dens), a.repeat, comm)
+            _, te = timed(lambda: es.evaluate(**dens), a.repeat, comm)
             row["fourier"], row["evaluate"] = tf, te
         rows = comm.gather({k: v for k, v in row.items() if k != "u"}, root=0)
         results[grid] = u
