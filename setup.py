@@ -12,6 +12,7 @@ KERNELS = [
     "search",      # cell-list near-pair search
     "series",      # spherical-harmonic series at arbitrary points (projections)
     "ewald",       # real-space part of the spectral Ewald sums (cell lists)
+    "spread",      # ES-kernel spreading / interpolation on a box of a periodic grid (distributed Ewald grid)
 ]
 
 HEADERS = ["pairsum.h", "pairsum_avx2.h", "ewaldsum.h", "ewaldsum_avx2.h", "ewald_cells.pxi"]   # and includes

@@ -34,6 +34,7 @@ SCRIPTS = [
     ("cost_model.py", ["--degrees", "6", "8", "--repeat", "1"], 0),
     ("step_cost.py", ["--p", "6", "--steps", "10"], 0),
     ("mpi_scaling.py", ["--nves", "8", "--p", "6", "--steps", "1"], 2),
+    ("ewald_grid.py", ["--nves", "8", "--p", "4", "--q", "8", "--tol", "1e-6", "--repeat", "1"], 2),
     ("sdc_order.py", ["--p", "4", "--case", "prolate", "--dts", "0.1,0.05", "--schemes", "euler,sdc3x2"], 0),
     ("render_movie.py", ["--frames", "60"], 0),
     ("calibrate.py", ["--degrees", "6", "8", "--repeat", "1", "-o", os.path.join(tempfile.gettempdir(), "vesflow_calibration_quick.json")], 0),

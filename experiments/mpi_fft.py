@@ -22,7 +22,7 @@ Both paths are checked to give the same transform (printed: max relative differe
     OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python -m experiments.mpi_fft
     OMP_NUM_THREADS=1 .venv/bin/mpiexec -n 2 .venv/bin/python -m experiments.mpi_fft --modes 64 146 196
 
-Results: docs/explanation/parallel.md, "Design: replicated state, distributed work".
+Results: docs/explanation/parallel.md, "Distributed Ewald grid" (why its transposes move the kept modes only).
 """
 import argparse
 import os

@@ -20,7 +20,12 @@ exchange (vesflow.parallel.Halo) a rank holds only its own surfaces and its halo
 for the scene's initial vesicles and the run's Morton partition (`held_surfaces`, --scene).
 The Ewald grid (periodic Taylor-Green: the only far field there) is replicated per rank: the
 mode grid of the parameters vesflow would choose (3 complex components) plus the NUFFT's
-upsampled grid, taken as twice the mode grid (a model, not measured at this size).
+upsampled grid, taken as twice the mode grid (a model, not measured at this size); with
+--ewald-grid distributed (-ves_ewald_grid distributed) it is a rank's z-slab of the fine grid,
+its box over its vesicles' stencils and its mode slabs, counted for the scene's vesicles and the
+run's Morton partition (`distributed_grid_bytes`: grid / ranks plus the ghosts).
+
+    .venv/bin/python -m experiments.mpi_memory --ranks 1 2 4 16 64 --ewald-grid distributed
 
 The memory options -ves_self_precision single and -ves_pc_precision single store those dense
 arrays in float32: the owned part falls by half their bytes (counted from the shapes: 15.8 MB
@@ -69,12 +74,44 @@ def ewald_grid_bytes(n, p, L, tol=1e-8):
     return prm, L, modes * 16 * 3 * 3          # F (3 comps) + the NUFFT's upsampled grid (~2x)
 
 
+def distributed_grid_bytes(prm, boxes, order, L, ranks, m=3):
+    """-ves_ewald_grid distributed: the most grid bytes of any rank (vesflow.layerpot.ewald_grid:
+    its z-slab of the fine grid, its box over the stencils of its vesicles' points, the mode
+    slabs; `slab_bytes`) for each rank count, the vesicles' bounding boxes ``boxes`` (N, 2, 3)
+    over the ranks by the Morton order ``order`` (the run's partition), period L."""
+    import numpy as np
+    from vesflow.layerpot.ewald_grid import cover, es_kernel, fine_size, slab_bytes, upsample_for
+    from vesflow.parallel import balanced_blocks
+    ups = upsample_for(prm.nufft_eps)
+    w = es_kernel(prm.nufft_eps, ups)[0]
+    K = [int(k) for k in prm.modes]
+    n = [fine_size(k, ups) for k in K]
+    out = {}
+    for R in ranks:
+        starts = balanced_blocks(np.ones(len(order)), R)
+        most = 0
+        for r in range(R):
+            mine = order[starts[r]:starts[r + 1]]
+            blen = []
+            for a in range(3):
+                h = L / n[a]
+                u = np.concatenate([np.arange(np.floor(lo / h), np.ceil(hi / h) + 1)
+                                    for lo, hi in boxes[mine][:, :, a]])
+                blen.append(cover(np.mod(u, n[a]), n[a], w)[1])
+            zl = (r + 1) * n[2] // R - r * n[2] // R
+            yl = (r + 1) * (K[1] - 1) // R - r * (K[1] - 1) // R
+            most = max(most, slab_bytes(m, n, blen, zl, yl, K, R)["total"])
+        out[R] = most
+    return out
+
+
 def held_surfaces(scene_path, ranks, distance=None, tol=1e-8):
     """Most surfaces any rank holds (its own and those of its halo, vesflow.parallel.Halo) for
     each rank count, from the scene's initial vesicles (wrapped into the periodic cell): the
     Morton partition of the run, the bounding boxes of the p- and q-grid points, the halo
     distance of the far field the run would take: max(h_n, Ewald real-space cutoff) (periodic:
-    ewald); free space: h_n (direct).  Returns ({ranks: held}, distance, owned per rank)."""
+    ewald); free space: h_n (direct).  Returns ({ranks: held}, distance, owned per rank,
+    (the vesicles' boxes, their Morton order, the period))."""
     import numpy as np
     from vesflow import scene as S
     from vesflow.layerpot.ewald import choose_params
@@ -113,7 +150,7 @@ def held_surfaces(scene_path, ranks, distance=None, tol=1e-8):
                 hit[k:k + 512] = (box_gaps(boxes[mine], boxes[others[k:k + 512]], L) <= distance).any(axis=0)
             most = max(most, len(mine) + int(hit.sum()))
         held[R], owned[R] = most, int(np.diff(starts).max())
-    return held, distance, owned
+    return held, distance, owned, (boxes, order, L)
 
 
 def main(argv=None):
@@ -137,10 +174,13 @@ def main(argv=None):
     ap.add_argument("--ewald-own", choices=("smooth", "subtract"), default="smooth",
                     help="the Ewald far field's own vesicle (Settings.ewald_own): smooth keeps one more dense "
                          "3C x 3C operator per owned vesicle and layer (vesflow.layerpot.own_smooth)")
+    ap.add_argument("--ewald-grid", choices=("replicated", "distributed"), default="replicated",
+                    help="-ves_ewald_grid: the Ewald grid on every rank (replicated) or in z-slabs over the ranks "
+                         "(distributed: grid / ranks plus the ghost planes of a rank's box, distributed_grid_bytes)")
     ap.add_argument("--lu-kept", type=int, default=2, help="LU factors per vesicle kept (precond.MAX_DT_FACTORS 3; "
                     "fixed or slowly varying dt: 1-2)")
     args = ap.parse_args(argv)
-    held, distance, _ = held_surfaces(args.scene, sorted(set(args.ranks) | set(range(1, 9)) | {16, 32, 64}))
+    held, distance, _, layout = held_surfaces(args.scene, sorted(set(args.ranks) | set(range(1, 9)) | {16, 32, 64}))
     p, N = args.p, held[1]
     surf = args.surface_mb * 2 ** 20
     s, parts, lu = dense_bytes(p, lu_kept=args.lu_kept)
@@ -162,14 +202,23 @@ def main(argv=None):
     def replicated(R):
         return held[R] * surf + N * rest
     extra_lu = (args.lu_kept - 1) * dense_bytes(p)[2]
-    prm, L, grid = ewald_grid_bytes(N, p, args.period)
-    print(f"Taylor-Green box L = {L:.1f}: Ewald modes {prm.modes} at tol 1e-8, grid ~{grid / GB:.2f} GB per rank")
+    prm, L, grid_repl = ewald_grid_bytes(N, p, args.period)
+    print(f"Taylor-Green box L = {L:.1f}: Ewald modes {prm.modes} at tol 1e-8, replicated grid ~{grid_repl / GB:.2f} GB "
+          "per rank")
+    if args.ewald_grid == "distributed":
+        grids = distributed_grid_bytes(prm, layout[0], layout[1], layout[2] or L, sorted(set(args.ranks) | set(held)))
+        print("-ves_ewald_grid distributed, grid per rank (largest): "
+              + ", ".join(f"{R} ranks {grids[R] / GB:.3f} GB" for R in sorted(set(args.ranks))))
+        gridf = grids.__getitem__
+    else:
+        gridf = lambda R: grid_repl          # noqa: E731
+    grid = gridf(1)
     print(f"{'ranks':>6} {'owned':>6} {'held':>6} {'per rank GB':>12} {'all surfaces gathered':>22} "
           f"{'node total GB (all ranks)':>26}")
     for R in args.ranks:
         n_own = math.ceil(N / R)
-        per = base + n_own * (owned + extra_lu) + replicated(R) + grid
-        gathered = base + n_own * (owned + extra_lu) + N * repl + grid
+        per = base + n_own * (owned + extra_lu) + replicated(R) + gridf(R)
+        gathered = base + n_own * (owned + extra_lu) + N * repl + gridf(R)
         print(f"{R:6d} {n_own:6d} {held[R]:6d} {per / GB:12.2f} {gathered / GB:22.2f} {per * R / GB:26.1f}")
     # the options that bring one node's total under 24 GB (16 ranks, say)
     print("options (per owned vesicle; the dense arrays each removes, counted from their shapes: the measured\n"
@@ -185,7 +234,7 @@ def main(argv=None):
         tot = N * per_ves + base + replicated(1) + grid      # one rank
         print(f"  {name:45s} {per_ves / 2**20:7.1f} MB/vesicle, 1408 vesicles {N * per_ves / GB:6.1f} GB; "
               f"one rank {tot / GB:6.1f} GB, 16 ranks on a node "
-              f"{(N * per_ves + 16 * (base + replicated(16) + grid)) / GB:6.1f} GB")
+              f"{(N * per_ves + 16 * (base + replicated(16) + gridf(16))) / GB:6.1f} GB")
     # the options of vesflow: owned bytes fall by what the float32 arrays save (from their shapes)
     print(f"vesflow's memory options: memory per rank (model) and the fewest ranks of {args.fit_gb:g} GB each")
     print(f"{'-ves_self_precision':>19} {'-ves_pc_precision':>18} {'MB/owned':>9} "
@@ -197,7 +246,7 @@ def main(argv=None):
             per_own = owned + extra_lu - (s + parts + lu) + (s_b + parts_b + lu_b)
             if own_smooth:                   # E_v in the self operators' precision
                 per_own += s_b - s
-            per_rank = lambda R: base + math.ceil(N / R) * per_own + replicated(R) + grid
+            per_rank = lambda R: base + math.ceil(N / R) * per_own + replicated(R) + gridf(R)
             fewest = next((R for R in sorted(held) if per_rank(R) <= args.fit_gb * GB), None)
             print(f"{sp:>19} {pp:>18} {per_own / 2**20:9.1f} "
                   + " ".join(f"{per_rank(R) / GB:9.2f}" for R in args.ranks)

@@ -110,6 +110,11 @@ REGISTRY: tuple[Option, ...] = (
        "by per-vesicle operators built once per set-up (a cheaper GMRES iteration, a dearer set-up), subtract = "
        "in every iteration, auto = smooth when the cost model says the set-up pays over 15 applications per set-up "
        "(docs/explanation/far_field.md)", "quadrature", choices=("auto", "smooth", "subtract")),
+    _O("-ves_ewald_grid", str, "replicated", "ewald far field, the Fourier grid: replicated = every rank holds "
+       "the whole grid (NUFFT, the grid summed over the ranks), distributed = the fine grid in z-slabs over the "
+       "ranks, grid memory per rank ~ grid / ranks plus the ghost planes of the rank's sources "
+       "(docs/explanation/parallel.md, \"Distributed Ewald grid\")", "quadrature",
+       choices=("replicated", "distributed")),
     _O("-ves_far_tol", float, 1e-8, "requested relative accuracy of the fmm / ewald far-field sum",
        "quadrature", gt=0, lt=1),
     _O("-ves_pc_lag", int, 50, "rebuild the block preconditioner from the current shapes after at most this "

@@ -30,6 +30,7 @@ from ..surface import Surface
 from ..timing import NullTimers
 from . import near as nearmod
 from .ewald import OWN_MODES, own_extent_ok
+from .ewald_grid import GRID_MODES
 from .far import FarField, predicted_ewald, resolve_backend
 from .own_smooth import OwnSmoothOperators
 from .singular import SelfOperators
@@ -57,8 +58,14 @@ class Settings:
     """Quadrature settings of the layer potentials (defaults of the paper: q = 2p)."""
 
     def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
-                 near_blend=0.0, self_precision="double", ewald_own="auto", applies_per_setup=APPLIES_PER_SETUP):
+                 near_blend=0.0, self_precision="double", ewald_own="auto", applies_per_setup=APPLIES_PER_SETUP,
+                 ewald_grid="replicated"):
         self.q_self, self.q_far = q_self, q_far
+        if ewald_grid not in GRID_MODES:
+            raise ValueError(f"ewald_grid = {ewald_grid!r}: must be one of {', '.join(GRID_MODES)}")
+        # the Ewald Fourier grid: "replicated" (every rank holds the mode grid, NUFFT) or
+        # "distributed" (z-slabs over the ranks, vesflow.layerpot.ewald_grid; -ves_ewald_grid)
+        self.ewald_grid = ewald_grid
         if ewald_own not in OWN_MODES + ("auto",):
             raise ValueError(f"ewald_own = {ewald_own!r}: must be one of auto, {', '.join(OWN_MODES)}")
         # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
@@ -243,7 +250,7 @@ class LayerPotentials:
                             double_layer=self.want_double, ring=self.part)
         return FarField(self.src, self.src_id, self.trg, self.trg_id, backend=backend, eps=s.fmm_eps,
                         period=s.period, params=params, spread=(self.part, o), double_layer=self.want_double,
-                        own=self.far_own, own_skip=self._own_skip)
+                        own=self.far_own, own_skip=self._own_skip, grid=s.ewald_grid)
 
     # ------------------------------------------------------------------ setup helpers
     def _near_setup(self, trg, trg_id):

@@ -63,6 +63,7 @@ from vesflow._kernels import stokes as _stokes
 from vesflow.errors import SettingsError
 
 from .ewald_fourier import NUFFT_LIBS, Nufft, kernel_psi, kvectors, sym6
+from .ewald_grid import GRID_MODES, DistributedFourier
 from .groups import group_by_vesicle
 
 # margins added to ln(1/tol) in the error estimates (module docstring), measured so that the
@@ -342,10 +343,15 @@ class EwaldSum:
     sum of the module docstring (the Fourier part's share of the own vesicle at its given
     position); the caller removes it (vesflow.layerpot.own_smooth).  "smooth" needs every
     vesicle's extent plus rc below the period (:func:`own_extent_ok`); ``own_skip`` = (sources
-    per vesicle, mean area) for the cost model (:func:`choose_params`)."""
+    per vesicle, mean area) for the cost model (:func:`choose_params`).
+
+    ``grid`` (-ves_ewald_grid): "replicated", the Fourier part by the NUFFTs on the whole
+    mode grid (with ``spread``: the grid summed over the ranks); "distributed", on a fine grid
+    in z-slabs over the ranks of ``spread``'s partition (:mod:`vesflow.layerpot.ewald_grid`;
+    the same sum to the tolerance)."""
 
     def __init__(self, src, src_id, trg, trg_id, tol=1e-8, period=None, params=None, nufft=None,
-                 threads=None, double_layer=False, spread=None, own="subtract", own_skip=None):
+                 threads=None, double_layer=False, spread=None, own="subtract", own_skip=None, grid="replicated"):
         self.src = np.ascontiguousarray(src, dtype=np.float64).reshape(-1, 3)
         self.trg = np.ascontiguousarray(trg, dtype=np.float64).reshape(-1, 3)
         self.src_id = np.ascontiguousarray(src_id, dtype=np.int64).reshape(-1)
@@ -397,12 +403,25 @@ class EwaldSum:
         s01[s01 >= 2 * math.pi] = 0.0
         t01[t01 >= 2 * math.pi] = 0.0
         self._nufft = Nufft(nufft, p.modes, s01, t01, p.nufft_eps, self.threads)
+        self._psi = kernel_psi(p, self.threads)
+        if grid not in GRID_MODES:
+            raise SettingsError(f"-ves_ewald_grid = {grid!r}: must be one of {', '.join(GRID_MODES)}")
+        self.grid = grid
+        # grid = "distributed": the fine grid in z-slabs over the ranks of the partition, each
+        # rank spreading its own sources and interpolating at its targets
+        # (vesflow.layerpot.ewald_grid; docs/explanation/parallel.md, "Distributed Ewald grid")
+        self._dist = None
+        if grid == "distributed":
+            part, mine = spread if spread is not None else (None, slice(None))
+            self._dist_mine = np.arange(self.src.shape[0])[mine]
+            self._dist = DistributedFourier(p, s01[self._dist_mine], t01, None if part is None else part.comm,
+                                            self.threads, psi=self._psi)
         # spread = (partition, this rank's source indices or slice): the type-1 transform of
         # this rank's sources only, the mode grid summed over the ranks (Allreduce), the rest
         # replicated (docs/explanation/parallel.md: one node, the grid is small next to the far-field work);
         # a rank that holds no other rank's sources (one process) spreads with the plan above
         self._spread = None
-        if spread is not None:
+        if spread is not None and grid == "replicated":
             part, mine = spread
             mine = np.arange(self.src.shape[0])[mine]
             if np.array_equal(mine, np.arange(self.src.shape[0])):
@@ -410,7 +429,6 @@ class EwaldSum:
             else:
                 self._spread = (part, mine, Nufft(nufft, p.modes, np.ascontiguousarray(s01[mine]), t01,
                                                   p.nufft_eps, self.threads))
-        self._psi = kernel_psi(p, self.threads)
         self._k = kvectors(p)
         self._real = None            # cell lists of the real-space part, built at the first evaluation
         self._buffers = {}
@@ -451,6 +469,8 @@ class EwaldSum:
         if g is not None:
             comps.append(sym6(np.asarray(nw, dtype=np.float64), np.asarray(g, dtype=np.float64)))
         real = np.concatenate(comps, axis=0)
+        if self._dist is not None:
+            return self._dist.apply(real[:, self._dist_mine], f_w is not None, g is not None)
         m = real.shape[0]
         c = np.zeros(((m + 1) // 2, real.shape[1]), dtype=np.complex128)
         c.real = real[0::2]

@@ -211,7 +211,8 @@ class FarField:
     """
 
     def __init__(self, src, src_id, trg, trg_id, backend="auto", eps=DEFAULT_EPS, period=None,
-                 params=None, spread=None, double_layer=True, ring=None, own="subtract", own_skip=None):
+                 params=None, spread=None, double_layer=True, ring=None, own="subtract", own_skip=None,
+                 grid="replicated"):
         """params: the Ewald parameters (ewald backend; default: chosen for these sources and
         targets, `resolve_backend`).  With the vesicle partition (vesflow.parallel; trg are this
         rank's): the caller resolves the backend and parameters for the whole problem;
@@ -223,7 +224,8 @@ class FarField:
         (the sum over other vesicles, as every backend) or "smooth" (ewald only: the result
         then also holds the own vesicle's smooth Fourier share, which the caller removes,
         vesflow.layerpot.own_smooth; ``smooth_own`` tells whether it does); own_skip: (sources
-        per vesicle, mean area) for the cost model of "smooth"."""
+        per vesicle, mean area) for the cost model of "smooth"; grid: the Ewald Fourier grid,
+        "replicated" or "distributed" (EwaldSum, vesflow.layerpot.ewald_grid)."""
         self.src = _points("src", src)
         self.trg = _points("trg", trg)
         self.src_id = _ids("src_id", src_id, self.src.shape[0])
@@ -265,7 +267,7 @@ class FarField:
             trg = self.trg if own == "smooth" else self._snapped_targets()
             self.ewald = ewald.EwaldSum(self.src, self.src_id, trg, self.trg_id, tol=self.eps, period=period,
                                         params=params, spread=spread, double_layer=double_layer, own=own,
-                                        own_skip=skip)
+                                        own_skip=skip, grid=grid)
             self.smooth_own = own == "smooth"
 
     @cached_property
