@@ -165,3 +165,50 @@ def test_check_estimates_the_wall():
     assert h_w > 2.0 and est.wall_near_points == 2 * 16 * 17        # every point of the p = 16 sphere
     free = costs.estimate(parse_scene("[[vesicle]]\n"))
     assert free.wall_p == 0 and free.t_wall == 0 and "wall" not in str(free) and "wall     p_w = 12" in str(est)
+
+
+CROSSING = """
+[discretization]
+p = 6
+[time]
+horizon = 0.2
+dt = 0.1
+[output]
+every = 0.1
+[gravity]
+g = [0.0, 0.0, -400.0]
+[wall]
+shape = "sphere"
+radius = 3.0
+p = 8
+[[vesicle]]
+center = [0.0, 0.0, -1.85]
+excess_density = 1.0
+bending_modulus = 0.1
+"""
+
+
+def test_a_single_vesicle_driven_into_the_wall_is_stopped_by_collisions(tmp_path):
+    """One vesicle (no other surface) pushed 0.15 from the wall: the steps that would cross it
+    are rejected as collisions and halved; the accepted states stay inside."""
+    scene, out = tmp_path / "cross.toml", tmp_path / "cross.h5"
+    scene.write_text(CROSSING)
+    r = subprocess.run([sys.executable, "-m", "vesflow", "run", str(scene), "-o", str(out), "-ts_type", "euler",
+                        "-ves_adapt", "none", "-ts_max_steps", "2"], capture_output=True, text=True, timeout=300,
+                       env=dict(os.environ, OMP_NUM_THREADS="1"), cwd=ROOT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with h5py.File(out) as f:
+        reason, accepted = f["steps/reason"][:], f["steps/accepted"][:]
+        pts = f["frames/points"][-1]
+    print(f"reasons {reason.tolist()}, accepted {accepted.tolist()}")
+    assert accepted.sum() == 2 and np.count_nonzero(reason == 3) >= 2          # 3: collision
+    assert np.linalg.norm(pts.reshape(-1, 3), axis=1).max() < 3.0
+
+
+def test_the_wall_density_is_in_the_checkpoint():
+    from vesflow.stepping.state import State
+    st = State.initial(np.zeros((1, 3, 8)), 8)
+    st.guess, st.wall = True, np.arange(6.0)
+    back = State.from_checkpoint(st.as_checkpoint())
+    assert np.array_equal(back.wall, st.wall) and State.from_checkpoint(State.initial(np.zeros((1, 3, 8)), 8)
+                                                                         .as_checkpoint()).wall is None

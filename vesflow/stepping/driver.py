@@ -51,7 +51,8 @@ class Driver:
         # not used everywhere because it keeps the descent from converging, docs/explanation/robustness.md)
         raw, post, reparam = cand.coeffs, self.post, self.opts["reparam"]
         cand.coeffs = self._post_processed(raw, reparam, dt=dt)
-        if self.opts["collision"] and len(raw) > 1 and post.touching(cand.coeffs):
+        walled = getattr(post, "wall", None) is not None          # a container: one vesicle can touch it
+        if self.opts["collision"] and (len(raw) > 1 or walled) and post.touching(cand.coeffs):
             touching = True
             if reparam:
                 cand.coeffs = self._post_processed(raw, True, project_its=10, dt=dt)

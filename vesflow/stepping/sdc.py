@@ -161,4 +161,4 @@ class SDC:
         self.contraction_error = error_estimate(self.differences)
         st.coeffs = X[M].copy()
         st.time += dt
-        return Solution(F_end.u, F_end.sigma, self.iterations, F_end.reason), err
+        return Solution(F_end.u, F_end.sigma, self.iterations, F_end.reason, F_end.wall), err

@@ -12,7 +12,8 @@ from ..stepper import Solution
 class State:
     """Position coefficients X (N, 3, C) at time t; the velocity u (N, 3, C) and tension sigma
     (N, C) of the last solve, the initial guess of the next one when `guess`; image (N, 3): the
-    lattice vectors / L the periodic wrap took off each vesicle (0 in free space)."""
+    lattice vectors / L the periodic wrap took off each vesicle (0 in free space); wall: a
+    container's density (3 C_w,) of the last solve (its part of the guess), None without."""
 
     coeffs: np.ndarray
     u: np.ndarray
@@ -20,19 +21,21 @@ class State:
     image: np.ndarray
     t: float
     guess: bool = False
+    wall: np.ndarray | None = None
 
     def copy(self):
-        return State(self.coeffs.copy(), self.u.copy(), self.sigma.copy(), self.image.copy(), self.t, self.guess)
+        return State(self.coeffs.copy(), self.u.copy(), self.sigma.copy(), self.image.copy(), self.t, self.guess,
+                     None if self.wall is None else self.wall.copy())
 
     def load(self, stepper):
         """Put the stepper at this state (its coefficients, time and initial guess)."""
         stepper.coeffs = self.coeffs.copy()
         stepper.time = self.t
-        stepper.last = Solution(self.u, self.sigma, 0, 0) if self.guess else None
+        stepper.last = Solution(self.u, self.sigma, 0, 0, self.wall) if self.guess else None
 
     def advanced(self, stepper, sol):
         """The state the stepper reached with the Solution sol of its last solve."""
-        return State(stepper.coeffs.copy(), sol.u, sol.sigma, self.image, stepper.time, True)
+        return State(stepper.coeffs.copy(), sol.u, sol.sigma, self.image, stepper.time, True, sol.wall)
 
     @classmethod
     def initial(cls, coeffs, n_coeffs):
@@ -46,8 +49,13 @@ class State:
         coeffs = np.array(ck["coeffs"], dtype=float)
         image = (np.asarray(ck["image"], dtype=np.int64).reshape(-1, 3).copy() if "image" in ck
                  else np.zeros((len(coeffs), 3), dtype=np.int64))
-        return cls(coeffs, np.asarray(ck["u"]), np.asarray(ck["sigma"]), image, float(ck["time"]), bool(int(ck["has_last"])))
+        wall = np.asarray(ck["wall"], dtype=float).copy() if "wall" in ck else None
+        return cls(coeffs, np.asarray(ck["u"]), np.asarray(ck["sigma"]), image, float(ck["time"]), bool(int(ck["has_last"])),
+                   wall)
 
     def as_checkpoint(self):
-        return {"time": self.t, "coeffs": self.coeffs, "sigma": self.sigma, "u": self.u,
-                "has_last": int(self.guess), "image": self.image}
+        out = {"time": self.t, "coeffs": self.coeffs, "sigma": self.sigma, "u": self.u,
+               "has_last": int(self.guess), "image": self.image}
+        if self.wall is not None:           # a container's density: the restart's guess as the run's
+            out["wall"] = self.wall
+        return out
