@@ -14,7 +14,7 @@ KERNELS = [
     "ewald",       # real-space part of the spectral Ewald sums (cell lists)
 ]
 
-HEADERS = ["pairsum.h", "pairsum_avx2.h", "ewaldsum.h", "ewaldsum_avx2.h", "ewald_cells.pxi"]   # and includes
+HEADERS = ["pairsum.h", "pairsum_avx2.h", "nearmap.h", "ewaldsum.h", "ewaldsum_avx2.h", "ewald_cells.pxi"]   # and includes
 
 compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2", "-fno-math-errno"]
 # no -ffast-math: the singular quadrature needs exact cancellation.  -fno-math-errno changes no
