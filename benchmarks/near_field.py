@@ -16,7 +16,8 @@ application per GMRES iteration); printed, per near pair (CPU of the process, be
              the target and its 8 line points: the block sums) or map (the maps' product),
              interpolation and scatter (the rest of the near stage)
 
-and the near maps' memory per pair.  Works on any vesflow version that has the near stages (it
+and the near maps' memory per pair; then the collision check's near pairs (vesflow.collision:
+the same search and projection), CPU us per pair.  Works on any vesflow version that has the near stages (it
 times module functions by wrapping them), so that an old checkout is measured beside a new one:
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/near_field.py
@@ -31,7 +32,7 @@ import time
 
 import numpy as np
 
-from vesflow import shapes, sph
+from vesflow import collision, shapes, sph
 from vesflow._kernels import stokes
 from vesflow.layerpot import evaluator as ev
 from vesflow.layerpot import near as nearmod
@@ -175,6 +176,11 @@ def main(argv=None):
           + f"  | total {us(best_setup['total']):.2f}")
     print("iteration us/pair: " + "  ".join(f"{k} {us(best_it.get(k, 0.0)):.2f}" for k in i_parts)
           + f"  interpolation+scatter {us(it_rest):.2f}  | total {us(best_it['total']):.2f}")
+    t0 = time.process_time()
+    pairs, _ = collision.signed_gaps(surf, q, period)
+    t_col = time.process_time() - t0
+    print(f"collision check (vesflow.collision.signed_gaps, {len(pairs)} pairs): {1e6 * t_col / max(len(pairs), 1):.2f} "
+          f"us/pair; peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6:.2f} GB")
     for n_it in (8, 15):
         print(f"per set-up of {n_it} iterations: {us(best_setup['total'] + n_it * best_it['total']):.1f} us/pair")
     if a.save:
