@@ -15,7 +15,7 @@ KERNELS = [
     "spread",      # ES-kernel spreading / interpolation on a box of a periodic grid (distributed Ewald grid)
 ]
 
-HEADERS = ["pairsum.h", "pairsum_avx2.h", "ewaldsum.h", "ewaldsum_avx2.h", "ewald_cells.pxi"]   # and includes
+HEADERS = ["pairsum.h", "pairsum_avx2.h", "nearmap.h", "ewaldsum.h", "ewaldsum_avx2.h", "ewald_cells.pxi"]   # and includes
 
 compile_args = ["-O3", "-fopenmp", "-march=x86-64-v2", "-fno-math-errno"]
 # no -ffast-math: the singular quadrature needs exact cancellation.  -fno-math-errno changes no

@@ -30,6 +30,7 @@ SCRIPTS = [
     ("setup_operators.py", ["--n", "4", "--p", "8", "--repeat", "1"], 0),
     ("iteration.py", ["--n", "8", "--p", "8", "--repeat", "1"], 0),
     ("pair_kernels.py", ["--repeat", "1", "--sources", "2000", "--blocks", "100"], 0),
+    ("near_field.py", ["--cells", "2", "2", "8", "--p", "8", "--repeat", "1", "--its", "2"], 0),
     ("gmres_iterations.py", ["--sizes", "2", "8", "--degrees", "8"], 0),
     ("cost_model.py", ["--degrees", "6", "8", "--repeat", "1"], 0),
     ("step_cost.py", ["--p", "6", "--steps", "10"], 0),

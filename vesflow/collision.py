@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
+from ._kernels import search
 from .layerpot.evaluator import vesicles_of
 from .layerpot.near import Projection, near_distance, near_pairs_images
 from .parallel import Halo, Partition, vesicle_boxes
@@ -53,10 +54,10 @@ def near_projection(surface, q, period=None, part=None, stats=None):
     pairs, tpos = near_pairs_images(trg, trg_id, src, src_id, src_off, h, period)
     if not len(pairs):
         return pairs, None
-    rows = np.searchsorted(known, pairs[:, 1])
-    srcv = src.reshape(len(known), -1, 3)
-    d2 = np.einsum("pmk,pmk->pm", srcv[rows] - tpos[:, None], srcv[rows] - tpos[:, None])
-    it, jp = np.divmod(d2.argmin(axis=1), Tq.nlon)
+    rows = np.ascontiguousarray(np.searchsorted(known, pairs[:, 1]), dtype=np.int64)
+    nearest, d2 = np.empty(len(pairs), dtype=np.int64), np.empty(len(pairs))
+    search.nearest_sources(src, src_off, rows, np.ascontiguousarray(tpos), nearest, d2)   # the projections' start
+    it, jp = np.divmod(nearest, Tq.nlon)
     return pairs, Projection(coeffs, p, tpos, rows, Tq.theta[it], Tq.phi[jp])
 
 

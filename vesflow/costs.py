@@ -9,14 +9,17 @@ What is stored (float64, 8 bytes, unless a memory option says float32, 4 bytes):
                           dt octave (the LU factors; up to 3 are cached); float32 with
                           -ves_pc_precision single
     far/near sources      N x Mq x 7            (points, weights, normal x weight)
-    near pairs            P x (C + 8 x 3 + 9)   (basis row, line points, weights)
+    near pairs            P x (C + 8 x 3 + 9)   (basis row, line points, weights), and the maps
+                          of the pairs within -ves_near_map_mb: 6 C per pair and layer
 with C = (p+1)^2 - 1 coefficients per scalar, M = 2p(p+1) grid points, Mq = 2q(q+1) on the
 upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) pairs.
 
 Time per GMRES iteration: the membrane forces and transforms (per vesicle), the self
 operators (one GEMV each: they are streamed from memory), the far field (direct sum over the
 (N M) x ((N-1) Mq) pairs, the FMM or the Ewald sum, the backend and Ewald parameters the run
-takes: the rules below), and the near correction (9 Mq kernel evaluations per near pair).
+takes: the rules below), and the near correction (per near pair with a map: its 6 C entries
+streamed, vesflow.layerpot.nearmap; without: 9 Mq kernel evaluations); the set-up of a solve:
+the self operators and the near pairs (search, projection, basis, maps).
 Time per step: the solves of one step (3 with -ves_adapt doubling), each its set-up and
 ITERATIONS_PER_SOLVE GMRES iterations.  The seconds per unit of work are this machine's
 calibration (vesflow.calibration: a file written by benchmarks/calibrate.py, else the
@@ -36,14 +39,24 @@ import numpy as np
 from . import calibration as calmod, sph
 from ._kernels import stokes
 from .layerpot import ewald as ewaldmod, far as farmod
-from .layerpot.evaluator import (APPLIES_PER_SETUP, OWN_GEMV_BYTE, OWN_SETUP_PAIR, OWN_SINGLE_TOL, LayerPotentials,
-                                 Settings)
+from .layerpot.evaluator import (APPLIES_PER_SETUP, NEAR_MAP_MB, OWN_GEMV_BYTE, OWN_SETUP_PAIR, OWN_SINGLE_TOL,
+                                 LayerPotentials, Settings)
+from .layerpot.nearmap import map_bytes_per_pair
 from .layerpot.near import near_distance, near_pairs_images
 from .parallel import Partition
 from .setup_state import initial_coefficients
 from .surface import Surface
 
 NEAR_EVALS = 9                   # kernel evaluations per near pair and source point (1 + 8 line points)
+# The near pairs, seconds of one thread per pair (benchmarks/near_field.py, 32 biconcave cells at
+# 35 %, p = 16, q = 32, 540 pairs per cell; docs/explanation/performance.md "Near field"):
+# set-up (search, nearest source, projection, weights, basis) at p = 16, ~p^2; the maps' set-up
+# per pair, layer and q-grid source (the combined kernel and the transposed synthesis); per
+# iteration, every pair (on-surface value, interpolation, scatter) at p = 16, ~p^2, plus the
+# maps' entries streamed at the self operators' GEMV bandwidth or 9 Mq kernel evaluations
+NEAR_SETUP_S_PER_PAIR = 4.5e-5
+NEAR_MAP_SETUP_S_PER_SOURCE = 3.0e-8
+NEAR_ITERATION_S_PER_PAIR = 4.5e-7
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
 # doubling steps of 3 solves), 6-10 in docs/explanation/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)
@@ -82,7 +95,7 @@ class Estimate:
     t_self: float
     t_far: float
     t_near: float
-    t_setup: float               # per solve (every step: three with -ves_adapt doubling)
+    t_setup: float               # per solve (every step: three with -ves_adapt doubling): self operators, near pairs
     t_pc: float                  # per preconditioner factorization (every -ves_pc_lag solves)
     solves_per_step: int = 3
     iterations_per_solve: int = ITERATIONS_PER_SOLVE
@@ -97,6 +110,8 @@ class Estimate:
     t_wall_once: float = 0.0     # its operators, built once per run
     mem_wall: int = 0            # their bytes
     wall_near_points: int = 0    # vesicle grid points within its near zone at t = 0
+    t_near_setup: float = 0.0    # the near pairs' part of t_setup
+    near_mapped: int = 0         # near pairs with a map (-ves_near_map_mb)
 
     @property
     def t_step(self):
@@ -120,7 +135,8 @@ class Estimate:
         return "\n".join([
             f"cost     per GMRES iteration ~ {ms(self.t_iteration)}: forces {ms(self.t_forces)}, "
             f"self {ms(self.t_self)}, far ({self.far_backend}) {ms(self.t_far + self.t_own)}, near {ms(self.t_near)} ({near})",
-            f"         per solve set-up ~ {self.t_setup:.2f} s (self operators); preconditioner "
+            f"         per solve set-up ~ {self.t_setup:.2f} s (self operators {self.t_setup - self.t_near_setup:.2f}, "
+            f"near pairs {self.t_near_setup:.2f}, {self.near_mapped} of them with a map); preconditioner "
             f"factorization ~ {self.t_pc:.2f} s (every -ves_pc_lag solves)",
             f"         per time step ~ {self.t_step:.4g} s: {self.solves_per_step} solve(s) x (set-up + "
             f"{self.iterations_per_solve} GMRES iterations, an assumed typical count); {self.threads} thread(s), "
@@ -305,7 +321,10 @@ def estimate(scene, opts=None, near=True, calibration=None):
     if N > 1 and near:
         pairs = (_near_pairs(state[0], p, q, float(o.get("near_factor") or 1.0), scene.periodic_length or None)
                  if N * M <= NEAR_COUNT_MAX_POINTS else -1)
-    mem_near = max(pairs, 0) * (C + 3 * 8 + 9) * 8
+    layers = 2 if dl else 1
+    budget = float(o.get("near_map_mb") if o.get("near_map_mb") is not None else NEAR_MAP_MB)
+    mapped = min(max(pairs, 0), int(budget * 1e6 // map_bytes_per_pair(C, layers)))
+    mem_near = max(pairs, 0) * (C + 3 * 8 + 9) * 8 + mapped * map_bytes_per_pair(C, layers)
     threads = _threads()
     t_forces = N * (cal.forces_s[0] + cal.forces_s[1] * p ** 3)
     t_self = mem_self / cal.self_gemv_bytes_per_s
@@ -336,8 +355,13 @@ def estimate(scene, opts=None, near=True, calibration=None):
     own_bytes = 4 if (self_bytes == 4 or eps >= OWN_SINGLE_TOL) else 8   # LayerPotentials._own_dtype
     mem_own = mem_self * own_bytes // self_bytes if smooth_own else 0
     t_own = mem_own / cal.self_gemv_bytes_per_s
-    t_near = max(pairs, 0) * NEAR_EVALS * Mq * cal.near_s_per_eval / max(1, threads) * (2 if dl else 1)
-    t_setup = N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
+    n_near = max(pairs, 0)
+    t_near = (n_near * NEAR_ITERATION_S_PER_PAIR * (p / 16) ** 2 + mapped * map_bytes_per_pair(C, layers)
+              / cal.self_gemv_bytes_per_s + (n_near - mapped) * NEAR_EVALS * Mq * cal.near_s_per_eval * layers) / max(1, threads)
+    t_near_setup = (n_near * NEAR_SETUP_S_PER_PAIR * (p / 16) ** 2
+                    + mapped * layers * Mq * NEAR_MAP_SETUP_S_PER_SOURCE) / max(1, threads)
+    t_setup = (N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
+               + t_near_setup)
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
     wall = _wall_cost(scene, p, q, cal, threads, float(o.get("near_factor") or 1.0), dl) if scene.wall else {}
     return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
@@ -347,7 +371,7 @@ def estimate(scene, opts=None, near=True, calibration=None):
                     t_forces=t_forces, t_self=t_self, t_far=t_far, t_near=t_near, t_setup=t_setup, t_pc=t_pc,
                     solves_per_step=solves_per_step(o), threads=threads,
                     mem_own=mem_own, t_own=t_own, calibration=cal.source, decisions=chosen, ewald_best=ewald_best,
-                    **wall)
+                    t_near_setup=t_near_setup, near_mapped=mapped, **wall)
 
 
 def _wall_cost(scene, p, q, cal, threads, near_factor, double_layer):

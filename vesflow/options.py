@@ -103,6 +103,11 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_near_blend", float, 0.0, "blend the near-singular value into the smooth rule over "
        "h_n .. h_n (1 + blend) (C^2 weight) instead of switching at h_n: a velocity smooth in the positions, "
        "which high-order time steps need (docs/explanation/dynamics.md); 0 = switch", "quadrature", ge=0, le=1),
+    _O("-ves_near_map_mb", float, 2048.0, "memory per rank (MB) for the near pairs' precomputed maps: each near "
+       "pair within it gets its correction as a fixed linear map of the density, set up once per geometry "
+       "(13.8 KB per pair and layer at p = 16; a GMRES iteration then costs ~1 us per pair instead of 9 q-grid "
+       "sums, docs/explanation/performance.md); the others are evaluated every iteration; 0 = none",
+       "quadrature", ge=0, le=1e7),
     _O("-ves_far", str, "auto", "far-field sum: auto = the faster of direct and fmm by the cost model "
        "measured on this machine (docs/explanation/far_field.md; fmm from about 140 vesicles at p = 16)", "quadrature",
        choices=("auto", "direct", "fmm", "ewald")),

@@ -39,7 +39,7 @@ class Run(Driver):
         settings = Settings(q_self=opts["q_self"], q_far=opts["q_near"], near_factor=opts["near_factor"],
                             near_blend=opts["near_blend"], backend=opts["far"], fmm_eps=opts["far_tol"],
                             period=self.period, self_precision=opts["self_precision"], ewald_own=opts["ewald_own"],
-                            ewald_grid=opts["ewald_grid"])
+                            ewald_grid=opts["ewald_grid"], near_map_mb=opts["near_map_mb"])
         state = (State.initial(initial_coefficients(scene), sph.n_coeffs(self.p)) if checkpoint is None
                  else State.from_checkpoint(checkpoint))
         self.post = PostStep(opts, self.p, None, None, None, self.timers, self.period, lambda: self.q_near)

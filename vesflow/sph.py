@@ -21,6 +21,8 @@ from functools import lru_cache
 
 import numpy as np
 
+from ._kernels import series
+
 SQRT2 = np.sqrt(2.0)
 
 
@@ -67,6 +69,17 @@ def legendre(p, x):
     """
     x = np.asarray(x, dtype=float)
     s = np.sqrt(1.0 - x * x)
+    lam = legendre_values(p, x)
+    dlam = np.zeros_like(lam)
+    with np.errstate(divide="ignore", invalid="ignore"):   # derivatives are undefined at the poles
+        dlam, d2lam = _legendre_derivatives(p, x, s, lam, dlam)
+    return lam, dlam, d2lam
+
+
+def legendre_values(p, x):
+    """The values lam of legendre(p, x) alone, (p+1 [m], len(x), p+1 [n])."""
+    x = np.asarray(x, dtype=float)
+    s = np.sqrt(1.0 - x * x)
     lam = np.zeros((p + 1, len(x), p + 1))
     mm = 1.0 / np.sqrt(4.0 * np.pi) * np.ones_like(x)
     for m in range(p + 1):
@@ -79,10 +92,7 @@ def legendre(p, x):
             a = np.sqrt((4.0 * n * n - 1.0) / (n * n - m * m))
             b = np.sqrt(((n - 1.0) ** 2 - m * m) / (4.0 * (n - 1.0) ** 2 - 1.0))
             lam[m, :, n] = a * (x * lam[m, :, n - 1] - b * lam[m, :, n - 2])
-    dlam = np.zeros_like(lam)
-    with np.errstate(divide="ignore", invalid="ignore"):   # derivatives are undefined at the poles
-        dlam, d2lam = _legendre_derivatives(p, x, s, lam, dlam)
-    return lam, dlam, d2lam
+    return lam
 
 
 def _legendre_derivatives(p, x, s, lam, dlam):
@@ -352,13 +362,25 @@ def evaluate(coeffs, p, theta, phi):
     phi = np.asarray(phi, dtype=float).ravel()
     T = transform(p)
     padded = T.pad(coeffs)
-    lam, _, _ = legendre(p, np.cos(theta))                   # (M, P, N)
+    lam = legendre_values(p, np.cos(theta))                  # (M, P, N)
     m = np.arange(p + 1)
     c = np.where(m == 0, 1.0, SQRT2)[:, None]
     cosm = c * np.cos(np.outer(m, phi))                      # (M, P)
     sinm = c * np.sin(np.outer(m, phi))
     F = np.einsum("...kmn,mPn->...kmP", padded, lam, optimize=True)
     return np.einsum("...mP,mP->...P", F[..., 0, :, :], cosm) + np.einsum("...mP,mP->...P", F[..., 1, :, :], sinm)
+
+
+def basis_at(p, theta, phi):
+    """The C degree-p basis functions at the points (theta, phi) (P,): (P, C), the values of
+    ``evaluate(np.eye(C), p, theta, phi).T`` to rounding (each a Legendre value times c_m cos /
+    sin m phi; compiled, _kernels/series.pyx basis_points)."""
+    theta = np.ascontiguousarray(np.asarray(theta, dtype=float).ravel())
+    phi = np.ascontiguousarray(np.asarray(phi, dtype=float).ravel())
+    ns, ms, ks = (np.ascontiguousarray(a[:n_coeffs(p)]) for a in index_tables(p))
+    out = np.empty((len(theta), len(ns)))
+    series.basis_points(theta, phi, ns, ms, ks, out)
+    return out
 
 
 # ------------------------------------------------------------------------ rotations

@@ -12,7 +12,7 @@ import time
 
 STAGES = ("setup", "self", "near", "far", "repar", "other")
 # fine set-up stages -> the column they belong to
-ALIASES = {"self_setup": "setup", "near_setup": "setup", "far_setup": "setup", "own_setup": "setup",
+ALIASES = {"self_setup": "setup", "near_setup": "setup", "near_map": "setup", "far_setup": "setup", "own_setup": "setup",
            "far_own": "far", "pc_blocks": "setup",
            "pc_lu": "setup", "forces": "other", "rhs": "other", "correction": "other",
            "collision": "other", "output": "other", "quad_adapt": "other", "reparam": "repar",

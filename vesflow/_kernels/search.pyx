@@ -17,7 +17,7 @@ for each target, the nearest source of its own vesicle if it lies within a toler
 import numpy as np
 
 from cython.parallel cimport prange, parallel
-from libc.math cimport floor, sqrt
+from libc.math cimport floor, sqrt, INFINITY
 from libc.stdlib cimport calloc, free, realloc
 cimport openmp
 
@@ -284,3 +284,35 @@ def coincident_sources(const double[:, ::1] src, const long[::1] src_off,
                     best = s
             res[t] = best
     return res_np
+
+
+def nearest_sources(const double[:, ::1] src, const long[::1] src_off, const long[::1] rows,
+                    const double[:, ::1] x, long[::1] index, double[::1] dist2):
+    """For each point x[i] (P, 3) its nearest source of vesicle rows[i] (sources src_off[v] ..
+    src_off[v+1] of src (n, 3)): index[i] the source's position within the vesicle (the first
+    of equally near ones), dist2[i] the squared distance.  The start of the projections."""
+    cdef Py_ssize_t P = x.shape[0], nv = src_off.shape[0] - 1, i, s, s0, s1, best
+    if x.shape[1] != 3 or src.shape[1] != 3:
+        raise ValueError("nearest_sources: src (n, 3) and x (P, 3) expected")
+    if rows.shape[0] != P or index.shape[0] != P or dist2.shape[0] != P:
+        raise ValueError("nearest_sources: rows, index and dist2 must have one entry per point")
+    for i in range(P):
+        if not (0 <= rows[i] < nv) or src_off[rows[i] + 1] <= src_off[rows[i]] or src_off[rows[i] + 1] > src.shape[0]:
+            raise ValueError(f"nearest_sources: rows[{i}] = {rows[i]} is not a vesicle with sources in [0, {nv})")
+    cdef double d0, d1, d2, dd, lo
+    with nogil:
+        for i in prange(P, schedule="static"):
+            s0 = src_off[rows[i]]
+            s1 = src_off[rows[i] + 1]
+            best = s0
+            lo = INFINITY
+            for s in range(s0, s1):
+                d0 = src[s, 0] - x[i, 0]
+                d1 = src[s, 1] - x[i, 1]
+                d2 = src[s, 2] - x[i, 2]
+                dd = d0 * d0 + d1 * d1 + d2 * d2
+                if dd < lo:
+                    lo = dd
+                    best = s
+            index[i] = best - s0
+            dist2[i] = lo

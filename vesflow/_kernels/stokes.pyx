@@ -567,3 +567,71 @@ def stokeslet_stresslet_sum_blocks(const double[::1] src, const double[::1] f, c
             m = src_off[ves[p] + 1] - o
             vf_both_planar_targets(ps + 3 * o, pf + 3 * o, pn + 3 * o, pg + 3 * o, m, &trg[p, 0, 0], K,
                                    &out[p, 0, 0])
+
+
+# ---------------------------------------------------------------------------------------
+# The near correction as a fixed linear map of the density (nearmap.h): per near pair the
+# combined kernel rows R (6, m) over its vesicle's m sources, set up once per geometry; the
+# rows projected on the coefficients (vesflow.layerpot.nearmap) are applied every iteration.
+# ---------------------------------------------------------------------------------------
+cdef extern from "nearmap.h" nogil:
+    void vf_nearmap_stokeslet(const double* src, const double* w, Py_ssize_t m, const double* x,
+                              const double* c, int K, double* R)
+    void vf_nearmap_stresslet(const double* src, const double* nw, Py_ssize_t m, const double* x,
+                              const double* c, int K, double* R)
+    void vf_nearmap_apply(const double* A, const double* d, Py_ssize_t n, double* o)
+
+
+def near_map_rows(const double[::1] src, const double[::1] weight, const long[::1] src_off,
+                  const double[:, :, ::1] trg, const double[:, ::1] coef, const long[::1] ves,
+                  double[:, :, ::1] out, bint double_layer=False):
+    """out[p] (6, m) = sum_k coef[p, k] K(trg[p, k], y_s) for the m sources y_s of vesicle ves[p]
+    (all vesicles must have m sources): the symmetric components xx, xy, xz, yy, yz, zz of the
+    Stokeslet times weight_s (the quadrature weight over mu; weight (n,)) or, double_layer, of
+    the stresslet with normal-times-weight ``weight`` (planar, 3 n).  src planar
+    (:func:`planar`); trg (P, K, 3), coef (P, K); out (P, 6, m), overwritten."""
+    cdef Py_ssize_t ns = src_off[src_off.shape[0] - 1] if src_off.shape[0] else 0
+    _check_planar("src", src, ns)
+    if weight.shape[0] != (3 * ns if double_layer else ns):
+        raise ValueError(f"weight must have {3 * ns if double_layer else ns} values, got {weight.shape[0]}")
+    if coef.shape[0] != trg.shape[0] or coef.shape[1] != trg.shape[1]:
+        raise ValueError("coef must have the shape (P, K) of trg's first two axes")
+    if trg.shape[2] != 3 or out.shape[0] != trg.shape[0] or out.shape[1] != 6 or ves.shape[0] != trg.shape[0]:
+        raise ValueError("trg (P, K, 3), ves (P,) and out (P, 6, m) must agree")
+    cdef Py_ssize_t p, v, n = trg.shape[0], m = out.shape[2], nv = src_off.shape[0] - 1
+    for p in range(n):
+        v = ves[p]
+        if not (0 <= v < nv) or src_off[v + 1] - src_off[v] != m:
+            raise ValueError(f"ves[{p}] = {v}: must be a vesicle index in [0, {nv}) with {m} sources")
+    if n == 0:
+        return
+    cdef int K = trg.shape[1]
+    cdef const double* ps = &src[0]
+    cdef const double* pw = &weight[0]
+    cdef Py_ssize_t o
+    with nogil:
+        for p in prange(n, schedule="dynamic", chunksize=8):
+            o = src_off[ves[p]]
+            if double_layer:
+                vf_nearmap_stresslet(ps + 3 * o, pw + 3 * o, m, &trg[p, 0, 0], &coef[p, 0], K, &out[p, 0, 0])
+            else:
+                vf_nearmap_stokeslet(ps + 3 * o, pw + o, m, &trg[p, 0, 0], &coef[p, 0], K, &out[p, 0, 0])
+
+
+def near_map_apply(const double[:, :, ::1] A, const long[::1] ves, const double[:, :, ::1] d, double[:, ::1] out):
+    """out[p] += A[p] d[ves[p]]: A (P, 6, C) the symmetric 3 x 3 blocks (xx, xy, xz, yy, yz, zz)
+    per coefficient, d (N, 3, C) the densities' coefficients, out (P, 3)."""
+    if A.shape[1] != 6 or d.shape[1] != 3 or A.shape[2] != d.shape[2]:
+        raise ValueError(f"A (P, 6, C) and d (N, 3, C) must agree, got (6, C) = ({A.shape[1]}, {A.shape[2]}) "
+                         f"and (3, C) = ({d.shape[1]}, {d.shape[2]})")
+    if ves.shape[0] != A.shape[0] or out.shape[0] != A.shape[0] or out.shape[1] != 3:
+        raise ValueError("A (P, 6, C), ves (P,) and out (P, 3) must agree")
+    cdef Py_ssize_t p, n = A.shape[0], C = A.shape[2], nv = d.shape[0]
+    for p in range(n):
+        if not (0 <= ves[p] < nv):
+            raise ValueError(f"ves[{p}] = {ves[p]} is not a density index in [0, {nv})")
+    if n == 0 or C == 0:
+        return
+    with nogil:
+        for p in prange(n, schedule="static"):
+            vf_nearmap_apply(&A[p, 0, 0], &d[ves[p], 0, 0], C, &out[p, 0])

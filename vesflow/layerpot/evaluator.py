@@ -24,11 +24,12 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sph
-from .._kernels import stokes
+from .._kernels import search, stokes
 from ..parallel import Halo, Partition, vesicle_boxes
 from ..surface import Surface
 from ..timing import NullTimers
 from . import near as nearmod
+from . import nearmap
 from .ewald import OWN_MODES, own_extent_ok
 from .ewald_grid import GRID_MODES
 from .far import FarField, predicted_ewald, resolve_backend
@@ -52,6 +53,9 @@ OWN_SETUP_PAIR = 2.5e-8
 # E_v in float32 from this far-field tolerance up (LayerPotentials._own_dtype)
 OWN_SINGLE_TOL = 1e-6
 OWN_GEMV_BYTE = 7.0e-11
+# memory per rank (MB) for the near pairs' maps (vesflow.layerpot.nearmap, 13.8 KB per pair and
+# layer at p = 16): the default of -ves_near_map_mb
+NEAR_MAP_MB = 2048.0
 
 
 class Settings:
@@ -59,13 +63,17 @@ class Settings:
 
     def __init__(self, q_self=None, q_far=None, near_factor=1.0, backend="auto", fmm_eps=1e-8, period=None,
                  near_blend=0.0, self_precision="double", ewald_own="auto", applies_per_setup=APPLIES_PER_SETUP,
-                 ewald_grid="replicated"):
+                 ewald_grid="replicated", near_map_mb=NEAR_MAP_MB):
         self.q_self, self.q_far = q_self, q_far
         if ewald_grid not in GRID_MODES:
             raise ValueError(f"ewald_grid = {ewald_grid!r}: must be one of {', '.join(GRID_MODES)}")
         # the Ewald Fourier grid: "replicated" (every rank holds the mode grid, NUFFT) or
         # "distributed" (z-slabs over the ranks, vesflow.layerpot.ewald_grid; -ves_ewald_grid)
         self.ewald_grid = ewald_grid
+        if not near_map_mb >= 0:
+            raise ValueError(f"near_map_mb = {near_map_mb!r}: must be >= 0 (MB; 0: no near maps)")
+        # memory per rank for the near pairs' precomputed maps (vesflow.layerpot.nearmap), MB
+        self.near_map_mb = float(near_map_mb)
         if ewald_own not in OWN_MODES + ("auto",):
             raise ValueError(f"ewald_own = {ewald_own!r}: must be one of auto, {', '.join(OWN_MODES)}")
         # the Ewald far field's own vesicle: "smooth" (its Fourier share removed by per-vesicle
@@ -127,6 +135,7 @@ class LayerPotentials:
         self.trg_id = np.repeat(np.asarray(self.idx, dtype=np.int64), self.Tp.npts)
         self.far = None
         self.near = None
+        self.near_maps, self._near_rest = None, None
         self.own_ops = None
         self.own_auto = None          # ewald_own "auto": the cost model's figures of the choice
         self.far_own = self._far_own_mode(gq)
@@ -134,6 +143,8 @@ class LayerPotentials:
         if self.N_total > 1 or s.period:    # periodic: a single vesicle sees its images
             with self.timers.stage("near_setup"):
                 self.near = self._near_setup(self.trg, self.trg_id)
+            with self.timers.stage("near_map"):
+                self.near_maps, self._near_rest = self._near_maps(self.near)
             with self.timers.stage("far_setup"):
                 self.far = self._far_field(backend, params)
             if self.far.smooth_own:
@@ -260,18 +271,13 @@ class LayerPotentials:
         # tpos: each pair's target, moved to its image nearest the vesicle when periodic
         pairs, tpos = nearmod.near_pairs_images(trg, trg_id, self.src, self.src_id, self.src_off, float(h_all.max()),
                                                 self.settings.period)
-        # exact per-vesicle width: min distance from the target to the vesicle's sources
-        keep = np.zeros(len(pairs), dtype=bool)
+        # exact per-vesicle width: min distance from the target to the vesicle's sources (compiled:
+        # the nearest source of each pair, the projection's start)
         nearest = np.empty(len(pairs), dtype=np.int64)
-        srcv = self.src.reshape(len(self.known), -1, 3)
-        for k0 in range(0, len(pairs), 2048):
-            sl = slice(k0, k0 + 2048)
-            v = pairs[sl, 1]
-            d = srcv[self._row(v)] - tpos[sl][:, None]                          # (B, Mq, 3)
-            d2 = np.einsum("bmk,bmk->bm", d, d)
-            j = d2.argmin(axis=1)
-            nearest[sl] = j
-            keep[sl] = np.sqrt(d2[np.arange(len(j)), j]) < 2.0 * h_all[v]
+        d2 = np.empty(len(pairs))
+        search.nearest_sources(self.src, self.src_off, np.ascontiguousarray(self._row(pairs[:, 1]), dtype=np.int64),
+                               np.ascontiguousarray(tpos), nearest, d2)
+        keep = np.sqrt(d2) < 2.0 * h_all[pairs[:, 1]]
         pairs, nearest, tpos = pairs[keep], nearest[keep], tpos[keep]
         if not len(pairs):
             return None
@@ -300,7 +306,29 @@ class LayerPotentials:
         return nearmod.NearPairs(
             pairs=pairs, tpos=tpos, rows=np.ascontiguousarray(self._row(pairs[:, 1]), dtype=np.int64),
             projection=proj, side=side, blocks=blocks, weights=nearmod.interpolation_weights(oriented, h),
-            basis=sph.evaluate(np.eye(sph.n_coeffs(p)), p, proj.theta, proj.phi).T, blend=weight)
+            basis=sph.basis_at(p, proj.theta, proj.phi), blend=weight)
+
+    def _near_maps(self, near):
+        """The near pairs' maps (vesflow.layerpot.nearmap.NearMaps) for the pairs whose source
+        vesicle is this rank's, as many as Settings.near_map_mb holds (the first ones), and the
+        NearPairs of the others (per-iteration blocks).  (None, near) when no pair gets a map."""
+        if near is None:
+            return None, None
+        layers = 1 + self.want_double
+        cap = int(self.settings.near_map_mb * 1e6 // nearmap.map_bytes_per_pair(self.Tp.ncoef, layers))
+        own = self.halo.own_rows()
+        pos = np.searchsorted(own, near.rows)
+        mine = (pos < len(own)) & (own[np.minimum(pos, len(own) - 1)] == near.rows)
+        index = np.flatnonzero(mine)[:cap]
+        if not len(index):
+            return None, near
+        # own rows are this rank's vesicles in increasing ids; the densities are in part.idx order
+        local = np.argsort(self.idx, kind="stable")[pos[index]]
+        maps = nearmap.NearMaps(near, index, local, self.src_planar, self.src_off,
+                                np.ascontiguousarray(self.src_w / self.mu),
+                                self.src_nw_planar if self.want_double else None, self.Tq)
+        rest = np.setdiff1d(np.arange(len(near.pairs)), index)
+        return maps, (_pairs_subset(near, rest) if len(rest) else None)
 
     def _row(self, ids):
         """Rows in `known` (this rank's sources) of vesicle ids."""
@@ -353,7 +381,7 @@ class LayerPotentials:
         with self.timers.stage("far"):
             vals = self._far_evaluate(fw, gq)
         with self.timers.stage("near"):
-            vals = self._near_correct(vals, self.near, fw, gq, u_near, g_near)
+            vals = self._near_correct(vals, self.near, fw, gq, u_near, g_near, f, g)
         vals = vals.reshape(self.N, -1, 3)
         out = u_self + self.Tp.analysis(np.moveaxis(vals, -1, -2))
         if u_own is not None:
@@ -383,17 +411,30 @@ class LayerPotentials:
             return fw_all, None, rows[1], None
         return fw_all, np.ascontiguousarray(rows[2].reshape(-1, 3)), rows[1], rows[3]
 
-    def _near_correct(self, vals, near, fw, gq, u_self, g):
+    def _near_correct(self, vals, near, fw, gq, u_self, g, f_local=None, g_local=None):
         """Replace the smooth rule of the near pairs by the near-singular value, in vals (T, 3);
         the on-surface value at the projection is the self potential of the pair's vesicle,
-        one-sided for D."""
+        one-sided for D.  The set-up's own pairs (near is self.near) with a map
+        (vesflow.layerpot.nearmap) from this rank's density coefficients f_local, g_local, the
+        others by the smooth rule over the sources."""
         if near is None:
             return vals
         u0 = _rows_times_vesicle(near.basis, u_self, near.rows)
         if gq is not None:
             g0 = _rows_times_vesicle(near.basis, g, near.rows) * (1.0 - self.lam_all[near.pairs[:, 1]])[:, None]
             u0 -= 0.5 * near.side[:, None] * g0
-        corr = self._near_minus_smooth(near, u0, fw, gq)
+        maps = self.near_maps if (near is self.near and f_local is not None) else None
+        if maps is None:
+            corr = self._near_minus_smooth(near, u0, fw, gq)
+        else:
+            corr = near.weights[:, :1] * u0
+            gl = None
+            if gq is not None and g_local is not None:
+                gl = g_local * (1.0 - self.lam)[:, None, None]
+            corr[maps.index] += maps.apply(f_local, gl)
+            rest = self._near_rest
+            if rest is not None:
+                corr[rest.index] = self._near_minus_smooth(rest, u0[rest.index], fw, gq)
         np.add.at(vals, near.pairs[:, 0], corr if near.blend is None else near.blend[:, None] * corr)
         return vals
 
@@ -533,6 +574,16 @@ def _point_rows(rows, m):
     if len(rows) and np.array_equal(rows, np.arange(rows[0], rows[0] + len(rows))):
         return slice(int(rows[0]) * m, (int(rows[-1]) + 1) * m)
     return (rows[:, None] * m + np.arange(m)[None]).reshape(-1)
+
+
+def _pairs_subset(near, index):
+    """The NearPairs of the pairs `index` of `near`, with `index` kept as its attribute."""
+    sub = nearmod.NearPairs(pairs=near.pairs[index], tpos=near.tpos[index], rows=near.rows[index],
+                            projection=None, side=near.side[index], blocks=np.ascontiguousarray(near.blocks[index]),
+                            weights=near.weights[index], basis=near.basis[index],
+                            blend=None if near.blend is None else near.blend[index])
+    sub.index = index
+    return sub
 
 
 def _rows_times_vesicle(basis, coeffs, v):

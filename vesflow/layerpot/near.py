@@ -76,71 +76,22 @@ class Projection:
     """
 
     def __init__(self, coeffs, p, targets, vesicle, start_theta, start_phi, tol=1e-10, max_iter=30):
-        x = np.asarray(targets, dtype=float)
+        x = np.ascontiguousarray(targets, dtype=float)
         padded = np.ascontiguousarray(sph.transform(p).pad(np.asarray(coeffs, dtype=float)))   # (V, 3, 2, M, N)
         vesicle = np.ascontiguousarray(vesicle, dtype=np.int64)
         th, ph = np.array(start_theta, dtype=float), np.array(start_phi, dtype=float)
-        Y, Yt, Yp = eval_points(padded, vesicle, th, ph)
-        res = np.einsum("pk,pk->p", Y - x, Y - x)
-        conv = np.zeros(len(x), dtype=bool)
-        for _ in range(max_iter):
-            act = ~conv
-            if not act.any():
-                break
-            r = x[act] - Y[act]
-            a11 = np.einsum("pk,pk->p", Yt[act], Yt[act])
-            a12 = np.einsum("pk,pk->p", Yt[act], Yp[act])
-            a22 = np.einsum("pk,pk->p", Yp[act], Yp[act])
-            b1 = np.einsum("pk,pk->p", Yt[act], r)
-            b2 = np.einsum("pk,pk->p", Yp[act], r)
-            det = a11 * a22 - a12 ** 2
-            dth = (a22 * b1 - a12 * b2) / det
-            dph = (a11 * b2 - a12 * b1) / det
-            step = np.ones(act.sum())
-            idx = np.nonzero(act)[0]
-            best = res[act].copy()
-            newY = Y[act].copy(); newYt = Yt[act].copy(); newYp = Yp[act].copy()
-            nth, nph = th[act].copy(), ph[act].copy()
-            # a full step below `local` is in Newton's quadratic range: take it without the
-            # residual test, which near the minimum of |x - Y|^2 sees only rounding (it used to
-            # halve such steps 12 times: most of the cost of a warm-started projection)
-            local = np.abs(dth) + np.abs(dph) < 1e-5
-            pending = np.ones(len(idx), dtype=bool)
-            for _ls in range(12):                                      # backtracking line search
-                if not pending.any():
-                    break
-                k = np.nonzero(pending)[0]
-                tt, pp = _wrap(th[idx[k]] + step[k] * dth[k], ph[idx[k]] + step[k] * dph[k])
-                y, yt, yp = eval_points(padded, vesicle[idx[k]], tt, pp)
-                rr = np.einsum("pk,pk->p", y - x[idx[k]], y - x[idx[k]])
-                ok = (rr <= best[k] * (1.0 + 1e-14)) | local[k]
-                kk = k[ok]
-                newY[kk], newYt[kk], newYp[kk] = y[ok], yt[ok], yp[ok]
-                nth[kk], nph[kk] = tt[ok], pp[ok]
-                best[kk] = rr[ok]
-                pending[kk] = False
-                step[k[~ok]] *= 0.5
-            size = np.abs(step * dth) + np.abs(step * dph)
-            th[idx], ph[idx], Y[idx], Yt[idx], Yp[idx] = nth, nph, newY, newYt, newYp
-            res[idx] = best
-            conv[idx] = (size < tol) | pending
+        Y, Yt, Yp = np.empty((len(x), 3)), np.empty((len(x), 3)), np.empty((len(x), 3))
+        conv = np.zeros(len(x), dtype=np.uint8)
+        # per point, compiled: Gauss-Newton with a backtracking line search (12 halvings); a full
+        # step below 1e-5 is in Newton's quadratic range and taken without the residual test,
+        # which near the minimum of |x - Y|^2 sees only rounding
+        series.project(padded, vesicle, x, th, ph, Y, Yt, Yp, conv, float(tol), int(max_iter))
+        conv = conv.astype(bool)
         n = np.cross(Yt, Yp)
         n /= np.linalg.norm(n, axis=1)[:, None]
         self.theta, self.phi, self.point, self.normal = th, ph, Y, n
         self.signed_distance = np.einsum("pk,pk->p", x - Y, n)
         self.converged = conv
-
-
-def _wrap(theta, phi):
-    """Keep theta in (0, pi) by crossing a pole: (-t, f) -> (t, f + pi)."""
-    neg = theta < 0
-    theta = np.where(neg, -theta, theta)
-    phi = np.where(neg, phi + np.pi, phi)
-    over = theta > np.pi
-    theta = np.where(over, 2 * np.pi - theta, theta)
-    phi = np.where(over, phi + np.pi, phi)
-    theta = np.clip(theta, 1e-12, np.pi - 1e-12)
-    return theta, np.mod(phi, 2 * np.pi)
 
 
 def lagrange_weights(nodes, x):
