@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import sph
-from .layerpot.evaluator import vesicles_of
+from .layerpot.evaluator import NEAR_CHUNK, vesicles_of
 from .layerpot.near import Projection, near_distance, near_pairs_images
 from .parallel import Halo, Partition, vesicle_boxes
 
@@ -55,8 +55,12 @@ def near_projection(surface, q, period=None, part=None, stats=None):
         return pairs, None
     rows = np.searchsorted(known, pairs[:, 1])
     srcv = src.reshape(len(known), -1, 3)
-    d2 = np.einsum("pmk,pmk->pm", srcv[rows] - tpos[:, None], srcv[rows] - tpos[:, None])
-    it, jp = np.divmod(d2.argmin(axis=1), Tq.nlon)
+    nearest = np.empty(len(pairs), dtype=np.int64)
+    for k0 in range(0, len(pairs), NEAR_CHUNK):      # (NEAR_CHUNK, Mq, 3) at a time, not (P, Mq, 3)
+        sl = slice(k0, k0 + NEAR_CHUNK)
+        d = srcv[rows[sl]] - tpos[sl][:, None]
+        nearest[sl] = np.einsum("pmk,pmk->pm", d, d).argmin(axis=1)
+    it, jp = np.divmod(nearest, Tq.nlon)
     return pairs, Projection(coeffs, p, tpos, rows, Tq.theta[it], Tq.phi[jp])
 
 

@@ -361,6 +361,20 @@ def evaluate(coeffs, p, theta, phi):
     return np.einsum("...mP,mP->...P", F[..., 0, :, :], cosm) + np.einsum("...mP,mP->...P", F[..., 1, :, :], sinm)
 
 
+def basis_values(p, theta, phi):
+    """The C basis functions at the points (theta, phi): (P, C), evaluate(eye(C), ...).T entry
+    for entry, without its (C, 2, p + 1, P) intermediate (78 kB per point at p = 16)."""
+    T = transform(p)
+    ks, ms, ns = (a[:T.ncoef] for a in T._pad_index)
+    theta = np.asarray(theta, dtype=float).ravel()
+    phi = np.asarray(phi, dtype=float).ravel()
+    lam, _, _ = legendre(p, np.cos(theta))                   # (M, P, N)
+    m = np.arange(p + 1)
+    c = np.where(m == 0, 1.0, SQRT2)[:, None]
+    trig = np.stack([c * np.cos(np.outer(m, phi)), c * np.sin(np.outer(m, phi))])    # (2, M, P)
+    return (lam[ms, :, ns] * trig[ks, ms, :]).T
+
+
 # ------------------------------------------------------------------------ rotations
 def rotation_y_points(beta, theta, phi):
     """Angles of R_y(beta) applied to the unit vectors (theta, phi)."""

@@ -51,6 +51,7 @@ OWN_SETUP_PAIR = 2.5e-8
 # E_v in float32 from this far-field tolerance up (LayerPotentials._own_dtype)
 OWN_SINGLE_TOL = 1e-6
 OWN_GEMV_BYTE = 7.0e-11
+NEAR_CHUNK = 256           # near pairs per block of the nearest-source search (set-up memory)
 
 
 class Settings:
@@ -257,8 +258,8 @@ class LayerPotentials:
         keep = np.zeros(len(pairs), dtype=bool)
         nearest = np.empty(len(pairs), dtype=np.int64)
         srcv = self.src.reshape(len(self.known), -1, 3)
-        for k0 in range(0, len(pairs), 2048):
-            sl = slice(k0, k0 + 2048)
+        for k0 in range(0, len(pairs), NEAR_CHUNK):       # (NEAR_CHUNK, Mq, 3) at a time: 13 MB at q = 32
+            sl = slice(k0, k0 + NEAR_CHUNK)
             v = pairs[sl, 1]
             d = srcv[self._row(v)] - tpos[sl][:, None]                          # (B, Mq, 3)
             d2 = np.einsum("bmk,bmk->bm", d, d)
@@ -293,7 +294,7 @@ class LayerPotentials:
         return nearmod.NearPairs(
             pairs=pairs, tpos=tpos, rows=np.ascontiguousarray(self._row(pairs[:, 1]), dtype=np.int64),
             projection=proj, side=side, blocks=blocks, weights=nearmod.interpolation_weights(oriented, h),
-            basis=sph.evaluate(np.eye(sph.n_coeffs(p)), p, proj.theta, proj.phi).T, blend=weight)
+            basis=sph.basis_values(p, proj.theta, proj.phi), blend=weight)
 
     def _row(self, ids):
         """Rows in `known` (this rank's sources) of vesicle ids."""
