@@ -46,7 +46,8 @@ class Run(Driver):
         self.post.part = self.part
         self.stepper = Stepper(state.coeffs, self.p, vesicle_params(scene), physics(scene), settings,
                                coupling=opts["coupling"], timers=self.timers, part=self.part,
-                               pc_precision=opts["pc_precision"])
+                               pc_precision=opts["pc_precision"], pc_factors=opts["pc_factors"],
+                               pc_parts=opts["pc_parts"])
         state.load(self.stepper)
         if checkpoint is None:
             S = Surface(state.coeffs, self.p)
