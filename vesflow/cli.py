@@ -215,7 +215,14 @@ def cmd_check(rest):
         _init_petsc(args)
         check_options(args, origins=origins)
     print(sc.summary())
+    from .costs import fit_memory  # lazy: numpy is loaded after threads.early_environment() (main)
+    try:
+        opts, line = fit_memory(sc, opts)
+    except NumericalFailure as e:      # check reports what a run would refuse, and exits 0
+        opts, line = opts, f"refused  {e}"
     print(estimate(sc, opts))
+    if line:
+        print(line if line.startswith("refused") else f"choices  {line}")
     return 0
 
 
@@ -304,6 +311,10 @@ def _run(rest, stop):
     from .io import OutputWriter  # lazy: numpy is loaded after threads.early_environment() (main)
     from .simulation import Run, check_available  # lazy: numpy is loaded after threads.early_environment() (main)
     check_available(sc, opts)                # before the output file exists
+    from .costs import fit_memory  # lazy: numpy is loaded after threads.early_environment() (main)
+    opts, memory_line = fit_memory(sc, opts, ranks=size)      # refuses (one line) before any work
+    if memory_line and rank0:
+        print(f"vesflow: {memory_line}")
     ck_every = opts["checkpoint_every"]
     failure = None
     try:

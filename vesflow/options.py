@@ -127,6 +127,10 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_pc_parts", str, "keep", "block preconditioner's parts (the blocks before their LU at a given dt): keep "
        "them, or drop them once factored (a dt no kept factor matches then rebuilds the blocks from the current "
        "shapes; docs/explanation/parallel.md)", "solver", choices=("keep", "drop")),
+    _O("-ves_setup_cache", str, "start", "layer potentials (self operators, near pairs) kept across the solves of an sdc "
+       "step: start = the step's start's, which every sweep reuses, and the current ones; current = the current ones "
+       "only (one set less in memory, 2 more set-ups per step; docs/explanation/parallel.md)", "solver",
+       choices=("start", "current")),
     _O("-ves_memory_limit", float, None, "memory the run may use, GiB: where the defaults' modelled peak would "
        "not fit, vesflow run and check choose memory options that do (said in one line) or refuse naming what "
        "would fit (docs/explanation/parallel.md)", "solver", gt=0, default_text="MemAvailable of /proc/meminfo"),

@@ -110,6 +110,7 @@ class _PerVesicle:
         self.parts_record = None   # what rebuilds them: {"coeffs", "q_self", "q_far"} of that geometry
         self.factors = []          # [(dt, [LU per vesicle])], newest last
         self.lu = None
+        self._just_rebuilt = False
         self.base_its = None       # iterations of the first solve after the last rebuild
         self.uses = 0              # solves since the last rebuild
         self.stale = False
@@ -153,11 +154,16 @@ class _PerVesicle:
         """The LayerPotentials the parts were built from, if they are still alive (else None)."""
         return None if self.parts_lp is None else self.parts_lp()
 
-    def rebuild(self, op):
-        """New parts from op's geometry, the reuse counters reset; the old parts and factors are
-        freed first (never held together with the new ones)."""
+    def rebuild(self, op, parts=True):
+        """New parts from op's geometry (parts False: none, -ves_pc_parts drop builds and factors
+        them vesicle by vesicle), the reuse counters reset; the old parts and factors are freed
+        first (never held together with the new ones)."""
         self.parts, self.factors, self.lu = None, [], None
-        self.build_parts(op)
+        if parts and self.keep_parts:
+            self.build_parts(op)
+        else:
+            self.note_parts(op)
+        self._just_rebuilt = True
         self.base_its, self.uses, self.stale = None, 0, False
         self.excess_its = 0
         self.rebuild_its = self.rebuild_cost(op)
@@ -168,6 +174,10 @@ class _PerVesicle:
         the record `Stepper.preconditioner_state` stores)."""
         with op.lp.timers.stage("pc_blocks"):
             self.parts = self.block_parts(op)
+        self.note_parts(op)
+
+    def note_parts(self, op):
+        """Record the geometry the blocks come from (parts_key, parts_lp, parts_record)."""
         self.parts_key = (op.N, op.p)
         self.parts_lp = weakref.ref(op.lp)
         self.parts_record = {"coeffs": op.lp.surface.coeffs, "q_self": int(op.lp.q_self), "q_far": int(op.lp.q_far)}
@@ -193,19 +203,26 @@ class _PerVesicle:
                 return lu
         self.lu = None
         del self.factors[:len(self.factors) - self.kept_factors + 1]
-        if self.parts is None:
-            if self.factors:              # other dts' factors stay; the blocks come from this geometry
+        dtype = self.dtype
+        factor = lambda parts: lu_factor(self.finish_block(parts.at(dt), op).astype(dtype, copy=False),
+                                         check_finite=False)
+        if self.parts is None and not self.keep_parts:
+            # the blocks of this geometry, each factored as soon as built (no parts of all vesicles held)
+            if not self._just_rebuilt:
+                if self.factors:          # other dts' factors stay
+                    self.rebuilds += 1
+                else:
+                    self.rebuild(op, parts=False)
+            self._just_rebuilt = False
+            with op.lp.timers.stage("pc_blocks"):
+                lu = map_vesicles(lambda v: factor(self.block_part(op, v)), range(op.N), op.p)
+            self.note_parts(op)
+        else:
+            if self.parts is None:
                 self.build_parts(op)
-                self.rebuilds += 1
-            else:
-                self.rebuild(op)
-        with op.lp.timers.stage("pc_lu"):
-            dtype = self.dtype
-            lu = map_vesicles(lambda k: lu_factor(self.finish_block(self.parts[k].at(dt), op).astype(dtype, copy=False),
-                                                  check_finite=False), range(len(self.parts)), op.p)
+            with op.lp.timers.stage("pc_lu"):
+                lu = map_vesicles(lambda k: factor(self.parts[k]), range(len(self.parts)), op.p)
         self.factors.append((dt, lu))
-        if not self.keep_parts:
-            self.parts = None
         return lu
 
     def blocks(self, op):
@@ -321,10 +338,12 @@ class BlockJacobi(_PerVesicle):
     """Inverse of the block diagonal: each vesicle with itself (the paper's better choice), its
     constant-tension mode regularized (`regularize_tension_mode`)."""
 
+    def block_part(self, op, v):
+        """Vesicle v's BlockParts, stored in the preconditioner's dtype as soon as built."""
+        return BlockParts(*op.self_block_parts(v, pc_grid(op.p, op.q_force)), dtype=self.dtype)
+
     def block_parts(self, op):
-        q = pc_grid(op.p, op.q_force)
-        dtype = self.dtype                 # each vesicle's parts stored in it as soon as built
-        return map_vesicles(lambda v: BlockParts(*op.self_block_parts(v, q), dtype=dtype), range(op.N), op.p)
+        return map_vesicles(lambda v: self.block_part(op, v), range(op.N), op.p)
 
 
 class SphereSpectral(_PerVesicle):
@@ -349,6 +368,11 @@ class SphereSpectral(_PerVesicle):
 
     def observe(self, its, failed=False, seconds=None):
         """The blocks depend on the radii only: nothing goes stale with the shapes."""
+
+    @property
+    def keep_parts(self):
+        """The spheres' parts are shared by the vesicles: always kept."""
+        return True
 
     def block_parts(self, op):
         radii = op.surface.effective_radius()

@@ -48,6 +48,7 @@ class Run(Driver):
                                coupling=opts["coupling"], timers=self.timers, part=self.part,
                                pc_precision=opts["pc_precision"], pc_factors=opts["pc_factors"],
                                pc_parts=opts["pc_parts"])
+        self.stepper.pin_start = opts["setup_cache"] == "start"
         state.load(self.stepper)
         if checkpoint is None:
             S = Surface(state.coeffs, self.p)

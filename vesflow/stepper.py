@@ -66,6 +66,7 @@ class Stepper:
         self.cond_max = 0.0         # the largest of them so far
         self.lp_cache_size = 1      # layer potentials kept for this many surfaces (the most recent)
         self.lp_pinned = None       # a Surface whose layer potentials are kept besides them (SDC: the step's start)
+        self.pin_start = True       # SDC may pin its step's start (-ves_setup_cache start; current: no pin)
         self.lp_last = self.lp_current = None
         self.ksp_seconds = 0.0      # wall seconds inside KSPSolve, and its iterations, summed over the solves
         self.ksp_its = 0
@@ -126,6 +127,8 @@ class Stepper:
         for dt in dts:
             op.dt = float(dt)
             ctx._factors_for(op)
+        if not ctx.keep_parts:
+            ctx.parts = None
         base = int(rec["base_its"])
         ctx.base_its, ctx.uses, ctx.stale = (None if base < 0 else base), int(rec["uses"]), bool(rec["stale"])
         ctx.rebuilds, ctx.rebuild_its, ctx.excess_its = int(rec["rebuilds"]), float(rec["rebuild_its"]), int(rec["excess_its"])
@@ -166,6 +169,9 @@ class Stepper:
         rest = [c for c in cache if c not in pinned]
         cache[:] = pinned + (rest[len(rest) - keep:] if keep > 0 else [])
         alive = [c[1] for c in cache]
+        for _, lp in rest:                      # the geometries of the surfaces evicted (not the stepper's own)
+            if all(lp is not a for a in alive) and lp.surface is not getattr(self, "_surface", None):
+                lp.surface.release_geometry()
         if all(self.lp_last is not lp for lp in alive):
             self.lp_last = None
         if all(self.lp_current is not lp for lp in alive):

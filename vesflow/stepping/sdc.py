@@ -133,7 +133,7 @@ class SDC:
         h = dt * np.diff(self.tau)
         self.iterations = 0
         surf = [st.surface]
-        st.lp_pinned = surf[0]
+        st.lp_pinned = surf[0] if st.pin_start else None
         F = [self._solve(0.0, surf[0]) if self.first == 0 else None]
         for m in range(M):                                  # provisional: first-order steps
             u = self._solve(h[m], surf[m]).u
