@@ -216,11 +216,12 @@ def cmd_check(rest):
         check_options(args, origins=origins)
     print(sc.summary())
     from .costs import fit_memory  # lazy: numpy is loaded after threads.early_environment() (main)
+    est = estimate(sc, opts)
     try:
-        opts, line = fit_memory(sc, opts)
+        fitted, line = fit_memory(sc, opts, est=est)
     except NumericalFailure as e:      # check reports what a run would refuse, and exits 0
-        opts, line = opts, f"refused  {e}"
-    print(estimate(sc, opts))
+        fitted, line = opts, f"refused  {e}"
+    print(est if fitted is opts else estimate(sc, fitted))
     if line:
         print(line if line.startswith("refused") else f"choices  {line}")
     return 0

@@ -100,6 +100,7 @@ class Estimate:
     options: dict = None         # the memory options of the estimate (memory_per_vesicle)
     near_per_vesicle: float = 0.0  # near pairs per vesicle (counted at t = 0, or NEAR_PAIRS_ASSUMED)
     base_bytes: int = BASE_BYTES
+    ewald_modes: float = 0.0     # modes of the Ewald grid (0: not ewald)
     decisions: dict = None       # the rules' choices at t = 0 (`decisions`)
     ewald_best: tuple = None     # (rc, seconds) of the cutoff this calibration would find fastest (ewald)
 
@@ -134,9 +135,16 @@ class Estimate:
     def per_vesicle_bytes(self):
         return sum(self.memory_per_vesicle().values())
 
+    def far_bytes(self, o=None):
+        """The Ewald far field's grids (per rank, replicated): EWALD_GRIDS per held set of layer
+        potentials and EWALD_GRIDS_APPLY more while one is applied, complex (16 B per mode)."""
+        o = dict(self.options or {}) if o is None else o
+        return int(16 * self.ewald_modes * (EWALD_GRIDS * layer_potentials_held(o) + EWALD_GRIDS_APPLY))
+
     def memory_peak_with(self, o, ranks=1):
         """Modelled peak of the whole run (every rank on this machine) with the options o."""
-        return int(ranks * self.base_bytes + self.n_vesicles * sum(self.memory_per_vesicle(o).values()))
+        return int(ranks * (self.base_bytes + self.far_bytes(o))
+                   + self.n_vesicles * sum(self.memory_per_vesicle(o).values()))
 
     @property
     def memory_peak(self):
@@ -176,7 +184,7 @@ class Estimate:
                 f"(self operators {mb(m['self'])}, Ewald own smooth operators {mb(m['own'])}, preconditioner parts "
                 f"{mb(m['pc_parts'])} and LU {mb(m['pc_factors'])} ({factor_sets(o)} set(s), {_entry(self.pc_bytes)}), "
                 f"near {mb(m['near'])}, sources and geometry {mb(m['sources'])}; {layer_potentials_held(o)} set(s) of "
-                f"layer potentials) + {mb(self.base_bytes)} MB; arrays: self operators {mb(self.mem_self)} MiB "
+                f"layer potentials) + {mb(self.base_bytes)} MB + Ewald grids {mb(self.far_bytes())} MB; arrays: self operators {mb(self.mem_self)} MiB "
                 f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''})")
 
     def _fits(self):
@@ -368,8 +376,9 @@ def estimate(scene, opts=None, near=True, calibration=None):
     t_setup = N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
     near_per = (max(pairs, 0) if pairs >= 0 else NEAR_PAIRS_ASSUMED * N) / N if N > 1 else 0.0
+    modes = float(np.prod(chosen["ewald"]["modes"])) if chosen is not None and chosen.get("ewald") else 0.0
     memo = {k: o.get(k) for k in MEMORY_OPTIONS + ("memory_limit", "ts_type", "coupling", "adapt", "ts_sdc_nodes", "ts_sdc_quadrature")}
-    return Estimate(options=memo, near_per_vesicle=near_per,n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
+    return Estimate(options=memo, near_per_vesicle=near_per, ewald_modes=modes,n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
                     mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_pc_parts=mem_pc_parts, self_bytes=self_bytes,
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
@@ -476,10 +485,11 @@ def held_memory(stepper):
 # per q-grid source point and per geometry grid point of the layer potentials' surfaces, the
 # set-up's transient per vesicle at the peak, and the process's base (interpreter, libraries,
 # PETSc, the transforms' and rotations' tables)
-NEAR_PAIR_EXTRA_BYTES = 420
-SOURCE_POINT_BYTES = 136
-GEOMETRY_POINT_BYTES = 360
-TRANSIENT_FRACTION = 0.0
+NEAR_PAIR_EXTRA_BYTES = 417      # NearPairs: 2721 B per pair at p = 16, C x 8 = 2304 of it the basis row
+SOURCE_POINT_BYTES = 112         # points, normals x weights (and planar copies), weights, ids
+GEOMETRY_POINT_BYTES = 330       # Geometry: 41 doubles per point (the q_far and p grids of each held surface)
+TRANSIENT_FRACTION = 0.07        # the step's traced peak over the arrays held after it (75.1 / 70.4 MB, N = 16)
+EWALD_GRIDS, EWALD_GRIDS_APPLY = 5, 4     # complex mode grids held per set of layer potentials, and while applied
 NEAR_PAIRS_ASSUMED = 500       # near pairs per vesicle when they are not counted (1408 cells at 35 %: 508)
 MEMORY_OPTIONS = ("pc_precision", "ewald_own", "pc_factors", "setup_cache", "pc_parts", "self_precision")
 
@@ -557,21 +567,21 @@ def memory_choices(o):
     return [(k, v) for k, v in steps if f"-ves_{k}" not in given and o.get(k) != v]
 
 
-def fit_memory(scene, opts, ranks=1, near=None):
+def fit_memory(scene, opts, ranks=1, near=None, est=None):
     """The options a run of `scene` takes so that its modelled peak (Estimate.memory_peak, all
     `ranks` on this machine) fits the memory available (available_memory: -ves_memory_limit or
     MemAvailable).  Returns (options, line): the options unchanged and line None when the
     defaults fit; else the first cumulative set of memory_choices that fits and the one line
     saying so.  Raises NumericalFailure (one line, naming what would fit) when nothing does.
     near: count the near pairs (default: when cheap, N M <= 2e5; else 500 per vesicle, a dense
-    suspension's figure)."""
+    suspension's figure); est: the Estimate of these options, if the caller has it."""
     from .errors import NumericalFailure  # lazy: only the refusal needs it
     avail, source = available_memory(opts.get("memory_limit"))
     if avail is None:
         return opts, None
     N, p = scene.n_vesicles, scene.p
     count = near if near is not None else N * 2 * p * (p + 1) <= 200_000
-    est = estimate(scene, opts, near=count)
+    est = estimate(scene, opts, near=count) if est is None else est
 
     def need(o):
         return est.memory_peak_with(o, ranks)
