@@ -40,6 +40,7 @@ SCRIPTS = [
     ("render_movie.py", ["--frames", "60"], 0),
     ("calibrate.py", ["--degrees", "6", "8", "--repeat", "1", "-o", os.path.join(tempfile.gettempdir(), "vesflow_calibration_quick.json")], 0),
     ("frame_cost.py", ["--p", "6", "--steps", "5"], 0),
+    ("memory_per_vesicle.py", ["--nves", "4", "--p", "8", "--scenes", "free"], 0),
     ("contacts.py", ["--case", "pushed-0.3", "--schemes", "sdc"], 0),
 ]
 

@@ -1,38 +1,25 @@
-"""Memory per rank of one step, modelled (issue 19): the paper's Taylor-Green suspension,
-1408 vesicles at p = 16, on 1, 2, 16 and 64 ranks, and what makes it fit in 24 GB.
+"""Memory per rank of one step, modelled: the paper's Taylor-Green suspension, 1408 vesicles at
+p = 16, on 1 ... 64 ranks, with vesflow's memory options one after the other.
 
     .venv/bin/python -m experiments.mpi_memory                      # the table of docs/explanation/parallel.md
     .venv/bin/python -m experiments.mpi_memory --ranks 1 2 4 16 64
 
-Per rank = base + (vesicles it owns) x owned + (surfaces it holds) x surface
-           + (all vesicles) x (replicated - surface) + Ewald grid.
-With the Ewald far field's own vesicle in the set-up (--ewald-own smooth, the default of
-vesflow.layerpot.own_smooth) `owned` holds one more dense 3C x 3C operator per vesicle and
-layer (5.7 MB at p = 16, single layer; in the self operators' precision).
-`owned` and `replicated` are the dense per-vesicle arrays counted from their shapes (self
-operator 3C x 3C, preconditioner parts A0 4C x 4C and S Mb 3C x 3C, LU factors 4C x 4C per
-kept dt) plus the rest, measured: the peak RSS of benchmarks/mpi_scaling.py at 8 and 64
-vesicles on 1 rank and 64 on 2 (--measured, GB) fixes the base and the two slopes.
-`surface` (--surface-mb, 0.44 MB at p = 16) is the part of `replicated` that the surfaces
-were, measured by experiments/mpi_surface_memory.py (4 ranks, 64 vesicles: the set-up peak of
-a rank holding all 64 surfaces against one holding 36, 12.4 MB / 28); since the near-zone
-exchange (vesflow.parallel.Halo) a rank holds only its own surfaces and its halo's, counted
-for the scene's initial vesicles and the run's Morton partition (`held_surfaces`, --scene).
-The Ewald grid (periodic Taylor-Green: the only far field there) is replicated per rank: the
-mode grid of the parameters vesflow would choose (3 complex components) plus the NUFFT's
-upsampled grid, taken as twice the mode grid (a model, not measured at this size); with
---ewald-grid distributed (-ves_ewald_grid distributed) it is a rank's z-slab of the fine grid,
-its box over its vesicles' stencils and its mode slabs, counted for the scene's vesicles and the
-run's Morton partition (`distributed_grid_bytes`: grid / ranks plus the ghosts).
+Per rank = base + Ewald grids + (vesicles it owns) x owned + (other surfaces it holds) x surface
+           + (other vesicles) x rest.
+`owned` is vesflow check's model (vesflow.costs.memory_per_vesicle: self and own smooth
+operators, preconditioner parts and LU sets, near pairs, sources and geometry, measured by
+benchmarks/memory_per_vesicle.py), base and the Ewald grids (replicated on every rank)
+likewise; `rest` (0.50 MB per vesicle of the suspension: the replicated state at a step's peak)
+and `surface` (0.19 MB per held surface) come from benchmarks/mpi_scaling.py --trace on 1 and 2
+ranks (64 vesicles at p = 16); the surfaces a rank holds (its own and those of its halo,
+vesflow.parallel.Halo) are counted for the scene's initial vesicles and the run's Morton
+partition (`held_surfaces`).
+With --ewald-grid distributed (-ves_ewald_grid distributed) a rank's Ewald grids are its z-slab
+of the fine grid, its box over its vesicles' stencils and its mode slabs (`distributed_grid_bytes`,
+counted for the scene's vesicles and the run's Morton partition: grid / ranks plus the ghosts),
+in the same proportion to the replicated grids as one evaluation's.
 
     .venv/bin/python -m experiments.mpi_memory --ranks 1 2 4 16 64 --ewald-grid distributed
-
-The memory options -ves_self_precision single and -ves_pc_precision single store those dense
-arrays in float32: the owned part falls by half their bytes (counted from the shapes: 15.8 MB
-per vesicle with both at p = 16 and one LU; measured at 8 vesicles: peak RSS 0.50 -> 0.38 GB,
-15 MB per vesicle).  The last table gives the fewest ranks of 24 GB each for every combination.
-
-    .venv/bin/python -m experiments.mpi_memory --fit-gb 24
 """
 import argparse
 import math
@@ -156,101 +143,58 @@ def held_surfaces(scene_path, ranks, distance=None, tol=1e-8):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--p", type=int, default=16)
-    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 16, 64])
-    ap.add_argument("--traced", type=float, nargs=2, default=[3.119, 1.578],
-                    help="tracemalloc peak (GB) of mpi_scaling.py --trace at p = 16, 64 vesicles: on 1 rank, on 2")
-    ap.add_argument("--held2", type=int, default=48, help="surfaces each of the 2 ranks held in that run")
-    ap.add_argument("--rss-base", type=float, default=0.14, help="peak RSS minus tracemalloc's peak (GB; "
-                    "0.13-0.15 in those runs and at 8 vesicles)")
-    ap.add_argument("--period", type=float, default=17.0, help="side of the periodic cube (runs/taylor_green_1408.toml: "
-                    "1408 cells of radius 0.766, v = 0.65, volume fraction 0.35)")
+    ap.add_argument("--ranks", type=int, nargs="+", default=[1, 2, 4, 16, 64])
+    ap.add_argument("--rest-mb", type=float, default=0.50, help="replicated state per vesicle of the suspension "
+                    "at a step's peak (MB; mpi_scaling.py --trace on 1 and 2 ranks, 64 vesicles at p = 16)")
     ap.add_argument("--surface-mb", type=float, default=0.19, help="memory per held surface at a step's peak, "
-                    "p = 16 (MB): mpi_scaling.py --trace on 2 ranks, 64 surfaces held (before the halo) against "
-                    "48, 1.581 - 1.578 GB")
+                    "p = 16 (MB): mpi_scaling.py --trace on 2 ranks, 64 surfaces held against 48")
+    ap.add_argument("--near-per-vesicle", type=float, default=540.0, help="near pairs per vesicle (vesflow check "
+                    "runs/taylor_green_1408.toml: 760320 at t = 0)")
     ap.add_argument("--scene", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "runs",
-                    "taylor_green_1408.toml"), help="scene whose halo sizes are counted (its vesicle count "
-                    "replaces --nves)")
-    ap.add_argument("--fit-gb", type=float, default=24.0, help="memory per rank to fit in (GB)")
-    ap.add_argument("--ewald-own", choices=("smooth", "subtract"), default="smooth",
-                    help="the Ewald far field's own vesicle (Settings.ewald_own): smooth keeps one more dense "
-                         "3C x 3C operator per owned vesicle and layer (vesflow.layerpot.own_smooth)")
+                    "taylor_green_1408.toml"), help="scene whose halo sizes are counted")
+    ap.add_argument("--fit-gb", type=float, default=16.0, help="memory of one node for all its ranks (GB)")
+    ap.add_argument("--period", type=float, default=17.0, help="side of the periodic cube")
     ap.add_argument("--ewald-grid", choices=("replicated", "distributed"), default="replicated",
                     help="-ves_ewald_grid: the Ewald grid on every rank (replicated) or in z-slabs over the ranks "
                          "(distributed: grid / ranks plus the ghost planes of a rank's box, distributed_grid_bytes)")
-    ap.add_argument("--lu-kept", type=int, default=2, help="LU factors per vesicle kept (precond.MAX_DT_FACTORS 3; "
-                    "fixed or slowly varying dt: 1-2)")
     args = ap.parse_args(argv)
-    held, distance, _, layout = held_surfaces(args.scene, sorted(set(args.ranks) | set(range(1, 9)) | {16, 32, 64}))
+    from vesflow import costs
+    held, distance, _, layout = held_surfaces(args.scene, sorted(set(args.ranks) | {1}))
     p, N = args.p, held[1]
-    surf = args.surface_mb * 2 ** 20
-    s, parts, lu = dense_bytes(p, lu_kept=args.lu_kept)
-    base, owned, surf, rest = fit(args.traced, args.held2, surf, args.rss_base)
-    # the fit's runs (mpi_scaling.py) had no Ewald far field: the own smooth operators E_v of the
-    # periodic Taylor-Green run (as many bytes as the self operators, single layer) come on top
-    own_smooth = args.ewald_own == "smooth"
-    repl = surf + rest
-    print(f"p = {p}: dense per vesicle: self operator {s / 2**20:.1f} MB, PC parts {parts / 2**20:.1f} MB, "
-          f"LU {lu / 2**20:.1f} MB ({args.lu_kept} kept), Ewald own smooth operator "
-          f"{(s if own_smooth else 0) / 2**20:.1f} MB (--ewald-own {args.ewald_own})")
-    print(f"measured (mpi_scaling.py --trace, 1 LU kept): base {base / GB:.2f} GB, per owned vesicle "
-          f"{owned / 2**20:.1f} MB, per vesicle of the suspension {repl / 2**20:.2f} MB before the halo, of which "
-          f"the surface {surf / 2**20:.2f} MB (now per held surface) and the rest {rest / 2**20:.2f} MB")
-    owned += s if own_smooth else 0
-    print(f"surfaces held per rank (own + halo within {distance:.3f}, the most over the ranks): "
-          + ", ".join(f"{R} ranks {held[R]}" for R in sorted(held)))
-
-    def replicated(R):
-        return held[R] * surf + N * rest
-    extra_lu = (args.lu_kept - 1) * dense_bytes(p)[2]
-    prm, L, grid_repl = ewald_grid_bytes(N, p, args.period)
-    print(f"Taylor-Green box L = {L:.1f}: Ewald modes {prm.modes} at tol 1e-8, replicated grid ~{grid_repl / GB:.2f} GB "
-          "per rank")
-    if args.ewald_grid == "distributed":
-        grids = distributed_grid_bytes(prm, layout[0], layout[1], layout[2] or L, sorted(set(args.ranks) | set(held)))
-        print("-ves_ewald_grid distributed, grid per rank (largest): "
-              + ", ".join(f"{R} ranks {grids[R] / GB:.3f} GB" for R in sorted(set(args.ranks))))
-        gridf = grids.__getitem__
+    prm, L, _ = ewald_grid_bytes(N, p, args.period)
+    modes = float(prm.modes[0]) * prm.modes[1] * prm.modes[2]
+    if args.ewald_grid == "distributed":     # a rank's share of the grids: its slab over the whole grid
+        dist = distributed_grid_bytes(prm, layout[0], layout[1], layout[2] or L, sorted(set(args.ranks) | {1}))
+        share = {R: dist[R] / dist[1] for R in dist}
+        print("-ves_ewald_grid distributed, grid per rank (largest) over the whole grid: "
+              + ", ".join(f"{R} ranks {share[R]:.3f}" for R in sorted(args.ranks)))
     else:
-        gridf = lambda R: grid_repl          # noqa: E731
-    grid = gridf(1)
-    print(f"{'ranks':>6} {'owned':>6} {'held':>6} {'per rank GB':>12} {'all surfaces gathered':>22} "
-          f"{'node total GB (all ranks)':>26}")
-    for R in args.ranks:
-        n_own = math.ceil(N / R)
-        per = base + n_own * (owned + extra_lu) + replicated(R) + gridf(R)
-        gathered = base + n_own * (owned + extra_lu) + N * repl + gridf(R)
-        print(f"{R:6d} {n_own:6d} {held[R]:6d} {per / GB:12.2f} {gathered / GB:22.2f} {per * R / GB:26.1f}")
-    # the options that bring one node's total under 24 GB (16 ranks, say)
-    print("options (per owned vesicle; the dense arrays each removes, counted from their shapes: the measured\n"
-          "peak falls less, SphereSpectral at 8 vesicles by 11 MB per vesicle, not 26; docs/explanation/parallel.md):")
-    opts = {
-        "as is": owned + extra_lu,
-        "SphereSpectral PC (no per-vesicle blocks)": owned + extra_lu - parts - (args.lu_kept) * dense_bytes(p)[2],
-        "single-precision PC parts and LU": owned + extra_lu - (parts + args.lu_kept * dense_bytes(p)[2]) / 2,
-        "single-precision self operators too": owned + extra_lu - (parts + args.lu_kept * dense_bytes(p)[2] + s
-                                                                   + (s if own_smooth else 0)) / 2,
-    }
-    for name, per_ves in opts.items():
-        tot = N * per_ves + base + replicated(1) + grid      # one rank
-        print(f"  {name:45s} {per_ves / 2**20:7.1f} MB/vesicle, 1408 vesicles {N * per_ves / GB:6.1f} GB; "
-              f"one rank {tot / GB:6.1f} GB, 16 ranks on a node "
-              f"{(N * per_ves + 16 * (base + replicated(16) + gridf(16))) / GB:6.1f} GB")
-    # the options of vesflow: owned bytes fall by what the float32 arrays save (from their shapes)
-    print(f"vesflow's memory options: memory per rank (model) and the fewest ranks of {args.fit_gb:g} GB each")
-    print(f"{'-ves_self_precision':>19} {'-ves_pc_precision':>18} {'MB/owned':>9} "
-          + " ".join(f"{f'{R} ranks':>9}" for R in args.ranks) + f" {'fewest ranks':>13} {'GB/rank there':>14}")
-    for sp in ("double", "single"):
-        for pp in ("double", "single"):
-            s_b, parts_b, lu_b = dense_bytes(p, lu_kept=args.lu_kept, self_bytes=4 if sp == "single" else 8,
-                                             pc_bytes=4 if pp == "single" else 8)
-            per_own = owned + extra_lu - (s + parts + lu) + (s_b + parts_b + lu_b)
-            if own_smooth:                   # E_v in the self operators' precision
-                per_own += s_b - s
-            per_rank = lambda R: base + math.ceil(N / R) * per_own + replicated(R) + gridf(R)
-            fewest = next((R for R in sorted(held) if per_rank(R) <= args.fit_gb * GB), None)
-            print(f"{sp:>19} {pp:>18} {per_own / 2**20:9.1f} "
-                  + " ".join(f"{per_rank(R) / GB:9.2f}" for R in args.ranks)
-                  + (f" {fewest:13d} {per_rank(fewest) / GB:14.2f}" if fewest else f" {'none':>13}"))
+        share = {R: 1.0 for R in set(args.ranks) | {1}}
+    print(f"{N} vesicles, p = {p}, Taylor-Green box L = {L:.1f}: Ewald modes {prm.modes} at tol 1e-8; surfaces held "
+          f"per rank (own + halo within {distance:.3f}): " + ", ".join(f"{R} ranks {held[R]}" for R in sorted(held)))
+    base = {"ts_type": "sdc", "ewald_own": "smooth"}
+    sets = [("defaults", dict(base))]
+    o = dict(base)
+    for k, v in [("pc_precision", "single"), ("ewald_own", "subtract"), ("pc_factors", 1), ("setup_cache", "current"),
+                 ("pc_parts", "drop"), ("self_precision", "single")]:
+        o = dict(o, **{k: v})
+        sets.append((f"+ -ves_{k} {v}", dict(o)))
+    print("per owned vesicle: costs.memory_per_vesicle; per rank: costs.BASE_BYTES, the Ewald grids "
+          f"({args.ewald_grid}), {args.rest_mb} MB per other vesicle of the suspension and {args.surface_mb} MB per other "
+          "surface held")
+    print(f"{'options (cumulative)':44} {'MB/owned':>9} " + " ".join(f"{f'{R} ranks':>9}" for R in args.ranks)
+          + f" {'node total (GB) at the most ranks':>34}")
+    for name, o in sets:
+        own_bytes = 4 if o.get("self_precision") == "single" else 8
+        per = sum(costs.memory_per_vesicle(p, 2 * p, o, False, args.near_per_vesicle, o["ewald_own"] == "smooth",
+                                           own_bytes, N).values())
+        grids = 16 * modes * (costs.EWALD_GRIDS * costs.layer_potentials_held(o) + costs.EWALD_GRIDS_APPLY)
+        per_rank = lambda R: (costs.BASE_BYTES + grids * share[R] + math.ceil(N / R) * per
+                              + (N - math.ceil(N / R)) * args.rest_mb * 2 ** 20
+                              + (held[R] - math.ceil(N / R)) * args.surface_mb * 2 ** 20)
+        R = max(args.ranks)
+        print(f"{name:44} {per / 2**20:9.1f} " + " ".join(f"{per_rank(R) / GB:9.2f}" for R in args.ranks)
+              + f" {R * per_rank(R) / GB:34.1f}")
 
 
 if __name__ == "__main__":

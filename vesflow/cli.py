@@ -215,7 +215,15 @@ def cmd_check(rest):
         _init_petsc(args)
         check_options(args, origins=origins)
     print(sc.summary())
-    print(estimate(sc, opts))
+    from .costs import fit_memory  # lazy: numpy is loaded after threads.early_environment() (main)
+    est = estimate(sc, opts)
+    try:
+        fitted, line = fit_memory(sc, opts, est=est)
+    except NumericalFailure as e:      # check reports what a run would refuse, and exits 0
+        fitted, line = opts, f"refused  {e}"
+    print(est if fitted is opts else estimate(sc, fitted))
+    if line:
+        print(line if line.startswith("refused") else f"choices  {line}")
     return 0
 
 
@@ -306,6 +314,10 @@ def _run(rest, stop):
     from .io import OutputWriter  # lazy: numpy is loaded after threads.early_environment() (main)
     from .simulation import Run, check_available  # lazy: numpy is loaded after threads.early_environment() (main)
     check_available(sc, opts)                # before the output file exists
+    from .costs import fit_memory  # lazy: numpy is loaded after threads.early_environment() (main)
+    opts, memory_line = fit_memory(sc, opts, ranks=size)      # refuses (one line) before any work
+    if memory_line and rank0:
+        print(f"vesflow: {memory_line}")
     ck_every = opts["checkpoint_every"]
     failure = None
     try:

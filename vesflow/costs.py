@@ -2,17 +2,23 @@
 iteration and per solve set-up; and the fixed rules of the numerical choices that depend on the
 problem's size (`decision_rules`, `decisions`).
 
-What is stored (float64, 8 bytes, unless a memory option says float32, 4 bytes):
-    self operators        N x (3C)^2            (x 2 with the double layer: S and D;
-                                                 float32 with -ves_self_precision single)
-    block preconditioner  N x ((4C)^2 + (3C)^2) parts A0 and S Mb, and N x (4C)^2 per cached
-                          dt octave (the LU factors; up to 3 are cached); float32 with
-                          -ves_pc_precision single
-    far/near sources      N x Mq x 7            (points, weights, normal x weight)
-    near pairs            P x (C + 8 x 3 + 9)   (basis row, line points, weights), and the maps
+What is stored (float64, 8 bytes, unless a memory option says float32, 4 bytes), per vesicle
+(`memory_per_vesicle`; a step's peak is that times N plus BASE_BYTES, `Estimate.memory_peak`):
+    self operators        (3C)^2 per held set of layer potentials (2 with sdc: the step's start
+                          and the current one; 1 with euler), x 2 with the double layer (S, D);
+                          float32 with -ves_self_precision single
+    Ewald own operators   as many as the self operators (-ves_ewald_own smooth)
+    block preconditioner  parts 15 C^2 (24 C^2 with a contrast; none with -ves_pc_parts drop) and
+                          (4C)^2 per LU set (`factor_sets`: sdc 3, euler with doubling 2; at most
+                          -ves_pc_factors); float32 with -ves_pc_precision single
+    near pairs            (C x 8 + NEAR_PAIR_EXTRA_BYTES) per pair and held set, and the maps
                           of the pairs within -ves_near_map_mb: 6 C per pair and layer
+    sources, geometry     SOURCE_POINT_BYTES per q-grid point and held set, GEOMETRY_POINT_BYTES
+                          per point of the cached surface grids
 with C = (p+1)^2 - 1 coefficients per scalar, M = 2p(p+1) grid points, Mq = 2q(q+1) on the
-upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) pairs.
+upsampled grid (q = -ves_q_near, 2p by default) and P the near (point, vesicle) pairs.  The
+constants are measured by benchmarks/memory_per_vesicle.py.  `fit_memory` picks the memory
+options a run takes when the defaults would not fit (-ves_memory_limit, or MemAvailable).
 
 Time per GMRES iteration: the membrane forces and transforms (per vesicle), the self
 operators (one GEMV each: they are streamed from memory), the far field (direct sum over the
@@ -62,6 +68,7 @@ NEAR_ITERATION_S_PER_PAIR = 4.5e-7
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
 SOLVES_PER_STEP = {"doubling": 3}                 # step attempts per step: one, or one and two halves
+BASE_BYTES = 200 * 2 ** 20       # a process's peak RSS besides its vesicles (memory_per_vesicle)
 NEAR_COUNT_MAX_POINTS = 1_200_000                 # count the near pairs when N M is below (~8 s CPU at the limit)
 # Weights of the preconditioner's rebuild rule (pc_rebuild_iterations), in seconds of one thread:
 # forces a + b p^3 per vesicle and iteration, bytes per second of the GEMVs, block and LU per
@@ -103,6 +110,10 @@ class Estimate:
     mem_own: int = 0             # the Ewald far field's own smooth operators E_v (as many as the self operators)
     t_own: float = 0.0           # their GEMV per iteration
     calibration: str = "defaults"  # where the seconds per unit of work came from (vesflow.calibration)
+    options: dict = None         # the memory options of the estimate (memory_per_vesicle)
+    near_per_vesicle: float = 0.0  # near pairs per vesicle (counted at t = 0, or NEAR_PAIRS_ASSUMED)
+    base_bytes: int = BASE_BYTES
+    ewald_modes: float = 0.0     # modes of the Ewald grid (0: not ewald)
     decisions: dict = None       # the rules' choices at t = 0 (`decisions`)
     ewald_best: tuple = None     # (rc, seconds) of the cutoff this calibration would find fastest (ewald)
     wall_p: int = 0              # a container's wall ([wall]): its degree (0: no wall)
@@ -128,6 +139,39 @@ class Estimate:
         return (self.mem_self + self.mem_own + self.mem_pc_parts + self.mem_pc_max + self.mem_sources + self.mem_near
                 + self.mem_wall)
 
+    def memory_per_vesicle(self, o=None):
+        """Bytes per vesicle at a step's peak by category (costs.memory_per_vesicle) with the
+        options o (default: the estimate's own)."""
+        o = dict(self.options or {}) if o is None else o
+        smooth = bool(self.mem_own) and o.get("ewald_own") != "subtract"
+        own_bytes = 4 if o.get("self_precision") == "single" or self.own_bytes == 4 else 8
+        return memory_per_vesicle(self.p, self.q, o, self.double_layer, self.near_per_vesicle, smooth, own_bytes,
+                                  self.n_vesicles)
+
+    @property
+    def own_bytes(self):
+        return 0 if not self.mem_own else int(round(self.mem_own / max(self.mem_self // self.self_bytes, 1)))
+
+    @property
+    def per_vesicle_bytes(self):
+        return sum(self.memory_per_vesicle().values())
+
+    def far_bytes(self, o=None):
+        """The Ewald far field's grids (per rank, replicated): EWALD_GRIDS per held set of layer
+        potentials and EWALD_GRIDS_APPLY more while one is applied, complex (16 B per mode)."""
+        o = dict(self.options or {}) if o is None else o
+        return int(16 * self.ewald_modes * (EWALD_GRIDS * layer_potentials_held(o) + EWALD_GRIDS_APPLY))
+
+    def memory_peak_with(self, o, ranks=1):
+        """Modelled peak of the whole run (every rank on this machine) with the options o."""
+        return int(ranks * (self.base_bytes + self.far_bytes(o))
+                   + self.n_vesicles * sum(self.memory_per_vesicle(o).values()))
+
+    @property
+    def memory_peak(self):
+        """Modelled peak resident memory of one process holding every vesicle."""
+        return self.memory_peak_with(self.options or {})
+
     def __str__(self):
         mib = lambda b: f"{b / 2**20:.1f} MiB"
         ms = lambda s: f"{s * 1e3:.2f} ms"
@@ -141,12 +185,7 @@ class Estimate:
             f"         per time step ~ {self.t_step:.4g} s: {self.solves_per_step} solve(s) x (set-up + "
             f"{self.iterations_per_solve} GMRES iterations, an assumed typical count); {self.threads} thread(s), "
             f"calibration: {self.calibration}",
-            f"memory   ~ {mib(self.memory)}: self operators {mib(self.mem_self)} "
-            f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''}"
-            f"{f'; the Ewald own smooth operators as many again, {mib(self.mem_own)}' if self.mem_own else ''}), block "
-            f"preconditioner parts {mib(self.mem_pc_parts)} (N 25 C^2 x {_entry(self.pc_bytes)}) and LU "
-            f"{mib(self.mem_pc)} per cached dt (N (4C)^2 x {_entry(self.pc_bytes)}, up to 3: {mib(self.mem_pc_max)}), "
-            f"sources {mib(self.mem_sources)}, near {mib(self.mem_near)}",
+            self._memory_line(),
             self._fits(),
         ] + ([f"wall     p_w = {self.wall_p}: {ms(self.t_wall)} of each GMRES iteration (in the figure above; "
               f"{self.wall_near_points} vesicle points within its near zone at t = 0), its operators "
@@ -163,18 +202,25 @@ class Estimate:
         return (f"         by this calibration the fastest Ewald cutoff would be rc = {rc:.4g}, "
                 f"{100 * (1 - t / self.t_far):.1f} % less far-field time than the rule's")
 
+    def _memory_line(self):
+        mb = lambda b: f"{b / 2**20:.1f}"
+        m = self.memory_per_vesicle()
+        o = self.options or {}
+        return (f"memory   ~ {self.memory_peak / 2**30:.2f} GiB at a step's peak: {mb(sum(m.values()))} MB per vesicle "
+                f"(self operators {mb(m['self'])}, Ewald own smooth operators {mb(m['own'])}, preconditioner parts "
+                f"{mb(m['pc_parts'])} and LU {mb(m['pc_factors'])} ({factor_sets(o)} set(s), {_entry(self.pc_bytes)}), "
+                f"near {mb(m['near'])}, sources and geometry {mb(m['sources'])}; {layer_potentials_held(o)} set(s) of "
+                f"layer potentials) + {mb(self.base_bytes)} MB + Ewald grids {mb(self.far_bytes())} MB; arrays: self operators {mb(self.mem_self)} MiB "
+                f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''})")
+
     def _fits(self):
-        """Whether the memory fits this machine's RAM (the minimum: one cached preconditioner)."""
-        least = self.memory - self.mem_pc_max + self.mem_pc
-        try:
-            ram = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-        except (ValueError, OSError, AttributeError):
-            return "machine  RAM unknown"
-        verdict = ("fits" if self.memory <= 0.8 * ram else
-                   "fits while at most one preconditioner set is cached (fixed dt)" if least <= 0.8 * ram else
-                   "does NOT fit")
-        return (f"machine  {ram / 2**30:.1f} GiB RAM: {verdict} (needs {least / 2**30:.1f} GiB with one cached "
-                f"preconditioner, {self.memory / 2**30:.1f} GiB with three; 80 % of the RAM usable)")
+        """Whether the modelled peak fits the memory available (-ves_memory_limit or MemAvailable)."""
+        avail, source = available_memory((self.options or {}).get("memory_limit"))
+        if avail is None:
+            return "machine  memory unknown"
+        peak = self.memory_peak
+        return (f"machine  {avail / 2**30:.1f} GiB RAM: {'fits' if peak <= avail else 'does NOT fit'} (needs "
+                f"~{peak / 2**30:.2f} GiB; {source})")
 
 
 def _entry(nbytes):
@@ -364,7 +410,10 @@ def estimate(scene, opts=None, near=True, calibration=None):
                + t_near_setup)
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
     wall = _wall_cost(scene, p, q, cal, threads, float(o.get("near_factor") or 1.0), dl) if scene.wall else {}
-    return Estimate(n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
+    near_per = (max(pairs, 0) if pairs >= 0 else NEAR_PAIRS_ASSUMED * N) / N if N > 1 else 0.0
+    modes = float(np.prod(chosen["ewald"]["modes"])) if chosen is not None and chosen.get("ewald") else 0.0
+    memo = {k: o.get(k) for k in MEMORY_OPTIONS + ("memory_limit", "ts_type", "coupling", "adapt", "ts_sdc_nodes", "ts_sdc_quadrature")}
+    return Estimate(options=memo, near_per_vesicle=near_per, ewald_modes=modes, n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
                     mem_pc=mem_pc, mem_pc_max=3 * mem_pc, mem_pc_parts=mem_pc_parts, self_bytes=self_bytes,
                     pc_bytes=pc_bytes, mem_sources=mem_sources, mem_near=mem_near,
                     near_pairs=pairs if N > 1 and near else (0 if N == 1 else -1), far_backend=backend,
@@ -435,3 +484,184 @@ def pc_rebuild_iterations(n_vesicles, p, q, double_layer=False, near_pairs=0, fa
         t_it += near_pairs * NEAR_EVALS * Mq * w["near_s_per_eval"] * n_ops
     t_pc = N * w["pc_setup_s"][0] * (p / 16) ** w["pc_setup_s"][1]
     return t_pc / t_it
+
+
+# ------------------------------------------------------------------ what a run holds (measured)
+def array_bytes(obj, seen=None, depth=0):
+    """Bytes of the numpy arrays reachable from obj (attributes, containers), each buffer
+    counted once (a view counts its base; `seen`: ids already counted, shared across calls).
+    The transforms' tables (sph.Transform, cached per degree for the whole process) are left out."""
+    seen = set() if seen is None else seen
+    if obj is None or depth > 12 or isinstance(obj, (int, float, str, bytes, bool, type)):
+        return 0
+    if isinstance(obj, np.ndarray):
+        while isinstance(obj.base, np.ndarray):
+            obj = obj.base
+        if id(obj) in seen:
+            return 0
+        seen.add(id(obj))
+        return int(obj.nbytes)
+    if id(obj) in seen or isinstance(obj, sph.Transform):
+        return 0
+    seen.add(id(obj))
+    if isinstance(obj, dict):
+        items = obj.values()
+    elif isinstance(obj, (list, tuple, set, frozenset)):
+        items = obj
+    elif hasattr(obj, "__dict__") and not callable(obj):
+        items = vars(obj).values()
+    else:
+        return 0
+    return sum(array_bytes(x, seen, depth + 1) for x in items)
+
+
+def held_memory(stepper):
+    """Bytes a Stepper holds between solves, by category (each array counted once, in the
+    first category that reaches it): the preconditioner's parts and LU factors, and for each
+    cached set of layer potentials its self operators, the Ewald own smooth operators, the
+    near pairs, the far field (Ewald grids) and the rest (sources, targets); then the state.
+    The number of cached layer potentials is `layer_potentials`."""
+    seen, out = set(), {}
+    ctx = getattr(stepper, "_pc_context", None)
+    out["pc_parts"] = array_bytes(getattr(ctx, "parts", None), seen)
+    out["pc_factors"] = array_bytes(getattr(ctx, "factors", None), seen) + array_bytes(getattr(ctx, "lu", None), seen)
+    lps = [lp for _, lp in stepper._lp_cache]
+    for extra in (getattr(stepper, "lp_last", None), getattr(stepper, "lp_current", None)):
+        if extra is not None and all(extra is not lp for lp in lps):
+            lps.append(extra)
+    for key, attr in (("self", "self_ops"), ("own", "own_ops"), ("near", "near"), ("far", "far")):
+        out[key] = sum(array_bytes(getattr(lp, attr, None), seen) for lp in lps)
+    out["sources"] = sum(array_bytes(lp, seen) for lp in lps)
+    out["pc_other"] = array_bytes(ctx, seen)
+    out["state"] = array_bytes(stepper, seen)
+    out["layer_potentials"] = len(lps)
+    out["total"] = sum(v for k, v in out.items() if k != "layer_potentials")
+    return out
+
+
+# ------------------------------------------------------------------ memory per vesicle (modelled)
+# Measured (benchmarks/memory_per_vesicle.py, p = 16; docs/explanation/parallel.md "Memory"):
+# bytes per near pair held (NearPairs: basis row C, line points, weights, projection) beyond C x 8,
+# per q-grid source point and per geometry grid point of the layer potentials' surfaces, the
+# set-up's transient per vesicle at the peak, and the process's base (interpreter, libraries,
+# PETSc, the transforms' and rotations' tables)
+NEAR_PAIR_EXTRA_BYTES = 417      # NearPairs: 2721 B per pair at p = 16, C x 8 = 2304 of it the basis row
+SOURCE_POINT_BYTES = 112         # points, normals x weights (and planar copies), weights, ids
+GEOMETRY_POINT_BYTES = 330       # Geometry: 41 doubles per point (the q_far and p grids of each held surface)
+TRANSIENT_FRACTION = 0.07        # the step's traced peak over the arrays held after it (75.1 / 70.4 MB, N = 16)
+EWALD_GRIDS, EWALD_GRIDS_APPLY = 5, 4     # complex mode grids held per set of layer potentials, and while applied
+NEAR_PAIRS_ASSUMED = 500       # near pairs per vesicle when they are not counted (1408 cells at 35 %: 508)
+MEMORY_OPTIONS = ("pc_precision", "ewald_own", "pc_factors", "setup_cache", "pc_parts", "self_precision")
+
+
+def factor_sets(o):
+    """The LU factor sets a step uses (one per distinct dt within precond.DT_MATCH): sdc its
+    distinct substeps and the velocity solves (dt = 0), euler with doubling dt and dt / 2, else 1;
+    at most -ves_pc_factors."""
+    ts = o.get("ts_type") or ("euler" if o.get("coupling") == "explicit" else "sdc")
+    if ts == "sdc":      # Radau IIA: n - 1 substeps of different lengths; Gauss-Lobatto: symmetric
+        n = int(o.get("ts_sdc_nodes") or 3)
+        used = 1 + ((n - 1) if (o.get("ts_sdc_quadrature") or "radau") == "radau" else n // 2)
+    else:
+        used = 2 if (o.get("adapt") or "doubling") == "doubling" else 1
+    return min(used, int(o.get("pc_factors") or 3))
+
+
+def layer_potentials_held(o):
+    """Sets of layer potentials a step holds: sdc the step's start's and the current one's
+    (Stepper.lp_pinned; one with -ves_setup_cache current), euler one."""
+    ts = o.get("ts_type") or ("euler" if o.get("coupling") == "explicit" else "sdc")
+    return 2 if ts == "sdc" and o.get("setup_cache") != "current" else 1
+
+
+def memory_per_vesicle(p, q, o, double_layer=False, near_pairs_per_vesicle=0.0, own_smooth=False, own_bytes=8,
+                       n_vesicles=2):
+    """Bytes per vesicle a run holds at a step's peak, by category (dict): the self operators
+    and the Ewald own smooth operators (per held set of layer potentials), the preconditioner's
+    parts (BlockParts: 15 C^2, 24 C^2 with a contrast; none with -ves_pc_parts drop) and LU factor
+    sets (factor_sets), the near pairs, sources and surface geometry of the held layer
+    potentials, and the set-up's transient.  o: resolved options (read_options; a dict)."""
+    C, Mq = (p + 1) ** 2 - 1, 2 * q * (q + 1)
+    n_ops = 2 if double_layer else 1
+    self_bytes = 4 if o.get("self_precision") == "single" else 8
+    pc_bytes = 4 if o.get("pc_precision") == "single" else 8
+    lps = layer_potentials_held(o)
+    out = {"self": lps * n_ops * (3 * C) ** 2 * self_bytes,
+           "own": lps * n_ops * (3 * C) ** 2 * own_bytes if own_smooth else 0,
+           "pc_parts": 0 if o.get("pc_parts") == "drop" else (24 if double_layer else 15) * C ** 2 * pc_bytes,
+           "pc_factors": factor_sets(o) * ((4 * C) ** 2 * pc_bytes + 4 * C * 4),
+           "near": lps * near_pairs_per_vesicle * (C * 8 + NEAR_PAIR_EXTRA_BYTES),
+           "sources": (lps * Mq * SOURCE_POINT_BYTES if n_vesicles > 1 else 0)
+           + (lps + 1) * GEOMETRY_POINT_BYTES * (Mq + 2 * p * (p + 1))}
+    out["transient"] = int(TRANSIENT_FRACTION * sum(out.values()))
+    return out
+
+
+def available_memory(limit_gib=None):
+    """(bytes, where from): -ves_memory_limit (GiB) when given, else MemAvailable of /proc/meminfo,
+    else the physical memory; (None, "unknown") when none can be read."""
+    if limit_gib is not None:
+        return int(float(limit_gib) * 2 ** 30), "-ves_memory_limit"
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024, "MemAvailable"
+    except OSError:
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"), "physical memory"
+    except (ValueError, OSError, AttributeError):
+        return None, "unknown"
+
+
+def memory_choices(o):
+    """The memory options to try, cumulatively, cheapest first, that the user did not give
+    (o.given): float32 preconditioner (fgmres keeps double's accuracy), no Ewald own smooth
+    operators (a dearer iteration), one LU factor set (a factorization per new dt), one set of
+    layer potentials (2 more set-ups per sdc step), the parts dropped (the blocks rebuilt per new
+    dt), float32 self operators (the operator rounded: 2.8e-8 of a solve)."""
+    given = getattr(o, "given", frozenset())
+    steps = [("pc_precision", "single"), ("ewald_own", "subtract"), ("pc_factors", 1), ("setup_cache", "current"),
+             ("pc_parts", "drop"), ("self_precision", "single")]
+    return [(k, v) for k, v in steps if f"-ves_{k}" not in given and o.get(k) != v]
+
+
+def fit_memory(scene, opts, ranks=1, near=None, est=None):
+    """The options a run of `scene` takes so that its modelled peak (Estimate.memory_peak, all
+    `ranks` on this machine) fits the memory available (available_memory: -ves_memory_limit or
+    MemAvailable).  Returns (options, line): the options unchanged and line None when the
+    defaults fit; else the first cumulative set of memory_choices that fits and the one line
+    saying so.  Raises NumericalFailure (one line, naming what would fit) when nothing does.
+    near: count the near pairs (default: when cheap, N M <= 2e5; else 500 per vesicle, a dense
+    suspension's figure); est: the Estimate of these options, if the caller has it."""
+    from .errors import NumericalFailure  # lazy: only the refusal needs it
+    avail, source = available_memory(opts.get("memory_limit"))
+    if avail is None:
+        return opts, None
+    N, p = scene.n_vesicles, scene.p
+    count = near if near is not None else N * 2 * p * (p + 1) <= 200_000
+    est = estimate(scene, opts, near=count) if est is None else est
+
+    def need(o):
+        return est.memory_peak_with(o, ranks)
+
+    first = need(opts)
+    if first <= avail:
+        return opts, None
+    o, chosen, total = opts, [], first
+    for k, v in memory_choices(opts):
+        trial = o.replaced({k: v})
+        if need(trial) >= total:         # saves nothing here (e.g. no Ewald own operators)
+            continue
+        o, total = trial, need(trial)
+        chosen.append(f"-ves_{k} {v}")
+        if total <= avail:
+            return o, (f"memory: the defaults need ~{first / 2**30:.2f} GiB, {source} {avail / 2**30:.2f} GiB: "
+                       f"using {' '.join(chosen)} (~{total / 2**30:.2f} GiB)")
+    per = sum(est.memory_per_vesicle(o).values())
+    most = int(max(avail - est.base_bytes * ranks, 0) // max(per, 1))
+    raise NumericalFailure(
+        f"memory: {N} vesicles at p = {p} need ~{need(o) / 2**30:.2f} GiB even with "
+        f"{' '.join(chosen) or 'the options given'}, more than {source} {avail / 2**30:.2f} GiB: "
+        f"at most {most} vesicles fit at p = {p} with these options (-ves_memory_limit sets the memory)")

@@ -131,6 +131,19 @@ REGISTRY: tuple[Option, ...] = (
     _O("-ves_pc_precision", str, "double", "block preconditioner's parts and LU factors: single (float32) "
        "halves their memory; the KSP is then fgmres unless -ksp_type is given (docs/explanation/parallel.md)", "solver",
        choices=("double", "single")),
+    _O("-ves_pc_factors", int, 3, "sets of LU factors the block preconditioner keeps, one per time-step size "
+       "(sdc's substeps and velocity solves take 3; fewer: each costs 10 MB per vesicle at p = 16 in double, a new "
+       "one is factored when no kept one matches, docs/explanation/parallel.md)", "solver", ge=1, le=3),
+    _O("-ves_pc_parts", str, "keep", "block preconditioner's parts (the blocks before their LU at a given dt): keep "
+       "them, or drop them once factored (a dt no kept factor matches then rebuilds the blocks from the current "
+       "shapes; docs/explanation/parallel.md)", "solver", choices=("keep", "drop")),
+    _O("-ves_setup_cache", str, "start", "layer potentials (self operators, near pairs) kept across the solves of an sdc "
+       "step: start = the step's start's, which every sweep reuses, and the current ones; current = the current ones "
+       "only (one set less in memory, 2 more set-ups per step; docs/explanation/parallel.md)", "solver",
+       choices=("start", "current")),
+    _O("-ves_memory_limit", float, None, "memory the run may use, GiB: where the defaults' modelled peak would "
+       "not fit, vesflow run and check choose memory options that do (said in one line) or refuse naming what "
+       "would fit (docs/explanation/parallel.md)", "solver", gt=0, default_text="MemAvailable of /proc/meminfo"),
     _O("-ves_blas_threads", int, 1, "BLAS threads (numpy's OpenBLAS); the OpenMP kernels use OMP_NUM_THREADS "
        "(vesflow.threads, docs/explanation/performance.md)", "solver", ge=1, le=1024),
     _O("-ves_coupling", str, "implicit", "inter-vesicle interactions in the solve (implicit) or "
@@ -347,6 +360,12 @@ class OptionValues(Mapping):
 
     def __setattr__(self, k, v):
         raise AttributeError("OptionValues is immutable")
+
+    def replaced(self, changes: dict) -> "OptionValues":
+        """A copy with the values of `changes` (keys) in place of these; `given` unchanged."""
+        vals = dict(self._values)
+        vals.update(changes)
+        return OptionValues(vals, self.given)
 
     def as_argv(self) -> list[str]:
         """The options in force as an argument list (for the output file's record)."""

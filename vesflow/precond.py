@@ -25,15 +25,24 @@ Precision (-ves_pc_precision): single keeps the parts and the LU factors in floa
 scipy's lu_factor on float32 blocks, applied with float32 solves): half the memory; the
 step's KSP is then fgmres (`Stepper.default_ksp_type`), whose residual is the true one, so the
 solution keeps double's accuracy (docs/explanation/parallel.md).
+
+Memory (docs/explanation/parallel.md, "Memory"): the parts are held compactly (`BlockParts`: of
+A0 only its coupling blocks -S Mt and Div, its velocity block only where it is not alpha I);
+-ves_pc_factors K keeps at most K sets of LU factors (one per dt); -ves_pc_parts drop frees the
+parts once factored, and a dt that no kept factor matches rebuilds the blocks from the current
+geometry (a rebuild).  Before a rebuild or a new factorization the parts and factors it replaces
+are freed, so that the old and the new are never held together.
 """
 from __future__ import annotations
+
+import weakref
 
 import numpy as np
 from scipy.linalg import lu_factor, lu_solve
 
 from .costs import pc_rebuild_iterations
 from .layerpot.singular import SelfOperators
-from .operator import StepOperator, VesicleParams, block_at
+from .operator import StepOperator, VesicleParams
 from .options import parse_value
 from .shapes import make_shape
 from .surface import Surface
@@ -43,6 +52,7 @@ from .timing import NullTimers
 REFRESH_FACTOR, REFRESH_SLACK = 3.0, 5
 DT_MATCH = 1.25
 MAX_DT_FACTORS = 3
+PARTS_MODES = ("keep", "drop")
 
 
 PC_DTYPES = {"double": np.float64, "single": np.float32}
@@ -52,12 +62,37 @@ class _PerVesicle:
     """Shared machinery: block parts per vesicle, LU factors per dt, reuse by iterations.
     precision: "double" or "single" (None: -ves_pc_precision of the options database)."""
 
-    def __init__(self, lag=None, precision=None):
+    def __init__(self, lag=None, precision=None, factors=None, parts=None):
         self.lag = lag
         if precision is not None and precision not in PC_DTYPES:
             raise ValueError(f"pc precision = {precision!r}: must be one of {', '.join(PC_DTYPES)}")
+        if factors is not None and not 1 <= int(factors) <= MAX_DT_FACTORS:
+            raise ValueError(f"pc factors = {factors!r}: must be an integer in [1, {MAX_DT_FACTORS}]")
+        if parts is not None and parts not in PARTS_MODES:
+            raise ValueError(f"pc parts = {parts!r}: must be one of {', '.join(PARTS_MODES)}")
         self.precision = precision
+        self.max_factors = None if factors is None else int(factors)
+        self.parts_mode = parts
         self.reset()
+
+    def _option(self, name, default):
+        """-ves_pc_factors / -ves_pc_parts of the options database (when not given to the constructor)."""
+        from petsc4py import PETSc   # lazy: the options database is read only when no value was given
+        return parse_value(f"-ves_{name}", PETSc.Options().getString(f"ves_{name}", str(default)))
+
+    @property
+    def kept_factors(self):
+        """Sets of LU factors kept, one per dt (-ves_pc_factors, default MAX_DT_FACTORS)."""
+        if self.max_factors is None:
+            self.max_factors = int(self._option("pc_factors", MAX_DT_FACTORS))
+        return self.max_factors
+
+    @property
+    def keep_parts(self):
+        """Whether the parts are kept after the factorization (-ves_pc_parts keep, the default)."""
+        if self.parts_mode is None:
+            self.parts_mode = self._option("pc_parts", "keep")
+        return self.parts_mode == "keep"
 
     @property
     def dtype(self):
@@ -69,10 +104,13 @@ class _PerVesicle:
 
     def reset(self):
         """Forget every part and factor (rebuilt at the next setUp)."""
-        self.parts = None          # per vesicle (A0, SMb)
+        self.parts = None          # per vesicle BlockParts (None once dropped: -ves_pc_parts drop)
         self.parts_key = None      # (N, p) they were built for
-        self.parts_lp = None       # the LayerPotentials (the geometry) they were built from
+        self.parts_lp = None       # weak reference to the LayerPotentials (the geometry) they were built from
+        self.parts_record = None   # what rebuilds them: {"coeffs", "q_self", "q_far"} of that geometry
         self.factors = []          # [(dt, [LU per vesicle])], newest last
+        self.lu = None
+        self._just_rebuilt = False
         self.base_its = None       # iterations of the first solve after the last rebuild
         self.uses = 0              # solves since the last rebuild
         self.stale = False
@@ -103,22 +141,47 @@ class _PerVesicle:
     def setUp(self, pc):
         A, _ = pc.getOperators()
         op = A.getPythonContext()
-        self.op = op
+        self.shape = (op.N, op.block)      # not the operator: it holds the layer potentials
+        self.wall = op.wall.wall if op.wall is not None else None    # a container's Wall (its LU), or None
         key = (op.N, op.p)
-        fresh_geometry = self.parts_lp is not op.lp
-        if (self.parts is None or key != self.parts_key or self.stale
+        fresh_geometry = self.built_from() is not op.lp
+        if (self.parts_key is None or key != self.parts_key or self.stale
                 or (fresh_geometry and self.uses >= self._max_uses())):
-            with op.lp.timers.stage("pc_blocks"):
-                self.parts = self.block_parts(op)
-            self.parts_key, self.parts_lp = key, op.lp
-            self.factors, self.base_its, self.uses, self.stale = [], None, 0, False
-            self.excess_its = 0
-            self.rebuild_its = self.rebuild_cost(op)
-            self.rebuilds += 1
-            self.lu = self._factors_for(op)
-        else:
-            self.lu = self._factors_for(op)
+            self.rebuild(op)
+        self.lu = self._factors_for(op)
         self.uses += 1
+
+    def built_from(self):
+        """The LayerPotentials the parts were built from, if they are still alive (else None)."""
+        return None if self.parts_lp is None else self.parts_lp()
+
+    def rebuild(self, op, parts=True):
+        """New parts from op's geometry (parts False: none, -ves_pc_parts drop builds and factors
+        them vesicle by vesicle), the reuse counters reset; the old parts and factors are freed
+        first (never held together with the new ones)."""
+        self.parts, self.factors, self.lu = None, [], None
+        if parts and self.keep_parts:
+            self.build_parts(op)
+        else:
+            self.note_parts(op)
+        self._just_rebuilt = True
+        self.base_its, self.uses, self.stale = None, 0, False
+        self.excess_its = 0
+        self.rebuild_its = self.rebuild_cost(op)
+        self.rebuilds += 1
+
+    def build_parts(self, op):
+        """The parts of op's geometry, and what identifies them (a weak reference to op.lp and
+        the record `Stepper.preconditioner_state` stores)."""
+        with op.lp.timers.stage("pc_blocks"):
+            self.parts = self.block_parts(op)
+        self.note_parts(op)
+
+    def note_parts(self, op):
+        """Record the geometry the blocks come from (parts_key, parts_lp, parts_record)."""
+        self.parts_key = (op.N, op.p)
+        self.parts_lp = weakref.ref(op.lp)
+        self.parts_record = {"coeffs": op.lp.surface.coeffs, "q_self": int(op.lp.q_self), "q_far": int(op.lp.q_far)}
 
     @staticmethod
     def rebuild_cost(op):
@@ -132,21 +195,40 @@ class _PerVesicle:
                                      getattr(getattr(lp, "settings", None), "fmm_eps", 1e-8))
 
     def _factors_for(self, op):
+        """The LU factors for op.dt: a kept set within DT_MATCH, else a new one (the oldest kept
+        set freed first when -ves_pc_factors are kept; with the parts dropped, the blocks are
+        built again from op's geometry first: a rebuild)."""
         dt = op.dt
         for dt_f, lu in self.factors:
             if (dt_f == dt) or (dt_f > 0 and dt > 0 and max(dt / dt_f, dt_f / dt) <= DT_MATCH):
                 return lu
-        with op.lp.timers.stage("pc_lu"):
-            dtype = self.dtype
-            lu = map_vesicles(lambda k: lu_factor(self.finish_block(block_at(*self.parts[k], dt), op).astype(dtype, copy=False),
-                                                  check_finite=False), range(len(self.parts)), op.p)
+        self.lu = None
+        del self.factors[:len(self.factors) - self.kept_factors + 1]
+        dtype = self.dtype
+        factor = lambda parts: lu_factor(self.finish_block(parts.at(dt), op).astype(dtype, copy=False),
+                                         check_finite=False)
+        if self.parts is None and not self.keep_parts:
+            # the blocks of this geometry, each factored as soon as built (no parts of all vesicles held)
+            if not self._just_rebuilt:
+                if self.factors:          # other dts' factors stay
+                    self.rebuilds += 1
+                else:
+                    self.rebuild(op, parts=False)
+            self._just_rebuilt = False
+            with op.lp.timers.stage("pc_blocks"):
+                lu = map_vesicles(lambda v: factor(self.block_part(op, v)), range(op.N), op.p)
+            self.note_parts(op)
+        else:
+            if self.parts is None:
+                self.build_parts(op)
+            with op.lp.timers.stage("pc_lu"):
+                lu = map_vesicles(lambda k: factor(self.parts[k]), range(len(self.parts)), op.p)
         self.factors.append((dt, lu))
-        del self.factors[:-MAX_DT_FACTORS]
         return lu
 
     def blocks(self, op):
         """The blocks as factored, at the operator's dt (for inspection and tests)."""
-        return [self.finish_block(block_at(A0, SMb, op.dt), op) for A0, SMb in self.block_parts(op)]
+        return [self.finish_block(parts.at(op.dt), op) for parts in self.block_parts(op)]
 
     def finish_block(self, A, op):
         """Each assembled block, before its factorization: its constant-tension mode regularized
@@ -156,18 +238,18 @@ class _PerVesicle:
     def apply(self, pc, x, y):
         """The blocks' LU solves; with a container's wall, its rows by the LU of its self block
         (1/2 I + pv D_w + N, vesflow.layerpot.wall.Wall: built once, walls do not move)."""
-        op = self.op
         xall = x.getArray(readonly=True)
-        xa = xall[:op.N * op.block].reshape(op.N, op.block)
+        n = self.shape[0] * self.shape[1]
+        xa = xall[:n].reshape(self.shape)
         out = np.empty_like(xa)
         if self.dtype != np.float64:       # float32 factors: float32 solves
             xa = xa.astype(self.dtype)
         for v, lu in enumerate(self.lu):
             out[v] = lu_solve(lu, xa[v], check_finite=False)
-        if op.wall is None:
+        if self.wall is None:
             y.setArray(out.ravel())
         else:
-            y.setArray(np.concatenate([out.ravel(), op.wall.wall.solve(op.wall_part(xall))]))
+            y.setArray(np.concatenate([out.ravel(), self.wall.solve(xall[n:])]))
 
     def view(self, pc, viewer):
         viewer.printfASCII(f"vesflow {type(self).__name__}: {len(getattr(self, 'lu', []))} dense LU blocks, "
@@ -214,15 +296,62 @@ def pc_grid(p, q_force):
     return min(q_force, max(-(-3 * p // 2), p + 6))
 
 
+class BlockParts:
+    """One vesicle's block parts, A(dt) = A0 - dt [S Mb 0; 0 0] (`StepOperator.self_block_parts`),
+    held compactly: of A0 (4C x 4C) its coupling blocks -S Mt (3C x C) and Div (C x 3C), its
+    velocity block only where it is not alpha I (a viscosity contrast, a locked sphere), the
+    tension gauge; S Mb (3C x 3C).  15 C^2 entries instead of 25 C^2 for lambda = 1; `at(dt)`
+    is the block of block_at(A0, SMb, dt), entry for entry.  Iterating gives the arrays held."""
+
+    def __init__(self, A0, SMb, dtype=np.float64):
+        n = SMb.shape[0]
+        uu = A0[:n, :n]
+        alpha = float(uu[0, 0])
+        plain = np.count_nonzero(uu) == np.count_nonzero(uu.diagonal()) and np.all(uu.diagonal() == alpha)
+        self.n, self.alpha = n, alpha
+        self.uu = None if plain else np.array(uu, dtype=dtype)
+        self.us = np.array(A0[:n, n:], dtype=dtype)
+        self.su = np.array(A0[n:, :n], dtype=dtype)
+        self.ss = np.array(A0[n:, n:], dtype=dtype) if np.count_nonzero(A0[n + 1:, n:]) or np.count_nonzero(A0[n, n + 1:]) \
+            else None
+        self.gauge = float(A0[n, n])
+        self.SMb = np.array(SMb, dtype=dtype)
+
+    def __iter__(self):
+        return iter([a for a in (self.uu, self.us, self.su, self.ss, self.SMb) if a is not None])
+
+    @property
+    def nbytes(self):
+        return sum(a.nbytes for a in self)
+
+    def at(self, dt):
+        """The block A0 - dt [S Mb 0; 0 0] (a new array, in the parts' dtype)."""
+        n, dtype = self.n, self.SMb.dtype
+        A = np.zeros((n + self.su.shape[0],) * 2, dtype=dtype)
+        if self.uu is None:
+            A[np.arange(n), np.arange(n)] = self.alpha
+        else:
+            A[:n, :n] = self.uu
+        A[:n, :n] -= dt * self.SMb
+        A[:n, n:] = self.us
+        A[n:, :n] = self.su
+        if self.ss is not None:
+            A[n:, n:] = self.ss
+        else:
+            A[n, n] = self.gauge
+        return A
+
+
 class BlockJacobi(_PerVesicle):
     """Inverse of the block diagonal: each vesicle with itself (the paper's better choice), its
     constant-tension mode regularized (`regularize_tension_mode`)."""
 
+    def block_part(self, op, v):
+        """Vesicle v's BlockParts, stored in the preconditioner's dtype as soon as built."""
+        return BlockParts(*op.self_block_parts(v, pc_grid(op.p, op.q_force)), dtype=self.dtype)
+
     def block_parts(self, op):
-        q = pc_grid(op.p, op.q_force)
-        dtype = self.dtype                 # each vesicle's parts stored in it as soon as built
-        return map_vesicles(lambda v: tuple(a.astype(dtype, copy=False) for a in op.self_block_parts(v, q)),
-                            range(op.N), op.p)
+        return map_vesicles(lambda v: self.block_part(op, v), range(op.N), op.p)
 
 
 class SphereSpectral(_PerVesicle):
@@ -241,12 +370,17 @@ class SphereSpectral(_PerVesicle):
     `regularize_tension_mode` makes it invertible, as for BlockJacobi.
     """
 
-    def __init__(self, lag=None, precision=None):
-        super().__init__(lag, precision)
+    def __init__(self, lag=None, precision=None, factors=None, parts=None):
+        super().__init__(lag, precision, factors, parts)
         self.spheres = {}
 
     def observe(self, its, failed=False, seconds=None):
         """The blocks depend on the radii only: nothing goes stale with the shapes."""
+
+    @property
+    def keep_parts(self):
+        """The spheres' parts are shared by the vesicles: always kept."""
+        return True
 
     def block_parts(self, op):
         radii = op.surface.effective_radius()
@@ -258,8 +392,8 @@ class SphereSpectral(_PerVesicle):
                 lp = _SelfOnly(SelfOperators(S.coeffs, op.p, op.lp.q_self, True, op.lp.want_double, op.params.mu),
                                op.lp.want_double, np.array([key[2]]))
                 prm = VesicleParams([key[1]], [key[2]], [0.0], op.params.mu)
-                self.spheres[key] = tuple(a.astype(self.dtype, copy=False) for a in
-                                          StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0))
+                self.spheres[key] = BlockParts(*StepOperator(S, prm, op.dt, lp, op.q_force).self_block_parts(0),
+                                               dtype=self.dtype)
             out.append(self.spheres[key])
         return out
 

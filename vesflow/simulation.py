@@ -51,7 +51,9 @@ class Run(Driver):
         self.post.wall = self.wall
         self.stepper = Stepper(state.coeffs, self.p, vesicle_params(scene), physics(scene), settings,
                                coupling=opts["coupling"], timers=self.timers, part=self.part,
-                               pc_precision=opts["pc_precision"], wall=self.wall)
+                               pc_precision=opts["pc_precision"], pc_factors=opts["pc_factors"],
+                               pc_parts=opts["pc_parts"], wall=self.wall)
+        self.stepper.pin_start = opts["setup_cache"] == "start"
         if self.wall is not None and checkpoint is None and writer is not None and hasattr(writer, "write_wall"):
             writer.write_wall(self.wall.surface.points()[0], self.wall.surface.coeffs[0], self.wall.p)
         state.load(self.stepper)

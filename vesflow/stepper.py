@@ -45,7 +45,8 @@ class Stepper:
     """Holds the state (position coefficients) and advances it with first-order steps."""
 
     def __init__(self, coeffs, p, params, physics=None, lp_settings=None, coupling="implicit",
-                 q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None, wall=None):
+                 q_force=None, timers=None, ksp_prefix=None, part=None, pc_precision=None, pc_factors=None,
+                 pc_parts=None, wall=None):
         self.coeffs = np.array(coeffs, dtype=float)
         self.wall = wall            # a container (vesflow.layerpot.wall.Wall) or None
         # vesflow.parallel.Partition of the vesicles (None: this process owns every vesicle)
@@ -60,12 +61,16 @@ class Stepper:
         self.timers = timers or Timers()
         self.ksp_prefix = ksp_prefix
         self.pc_precision = pc_precision   # of the default block-Jacobi PC (None: -ves_pc_precision)
+        self.pc_factors, self.pc_parts = pc_factors, pc_parts   # its kept LU sets and parts (None: the options)
         self.time = 0.0
         self.last = None            # last Solution: initial guess of the next solve
         self.lock_spheres = True    # a sphere's normal velocity of degree >= 2 held at 0 (sphere_constraints)
         self.cond_estimate = None   # of the last solve's preconditioned operator (_condition_estimate)
         self.cond_max = 0.0         # the largest of them so far
-        self.lp_cache_size = 1      # layer potentials kept for this many surfaces (SDC: one per node)
+        self.lp_cache_size = 1      # layer potentials kept for this many surfaces (the most recent)
+        self.lp_pinned = None       # a Surface whose layer potentials are kept besides them (SDC: the step's start)
+        self.pin_start = True       # SDC may pin its step's start (-ves_setup_cache start; current: no pin)
+        self.lp_last = self.lp_current = None
         self.ksp_seconds = 0.0      # wall seconds inside KSPSolve, and its iterations, summed over the solves
         self.ksp_its = 0
         self._lp_cache = []
@@ -95,10 +100,10 @@ class Stepper:
         factorization (oldest first) and its reuse counters.  {"built": 0} before any (or for a
         context without reuse state)."""
         ctx = getattr(self, "_pc_context", None)
-        if not isinstance(ctx, _PerVesicle) or ctx.parts is None:
+        if not isinstance(ctx, _PerVesicle) or ctx.parts_record is None:
             return {"built": 0}
-        lp = ctx.parts_lp
-        return {"built": 1, "coeffs": np.array(lp.surface.coeffs), "q_self": int(lp.q_self), "q_far": int(lp.q_far),
+        rec = ctx.parts_record
+        return {"built": 1, "coeffs": np.array(rec["coeffs"]), "q_self": rec["q_self"], "q_far": rec["q_far"],
                 "factor_dt": np.array([dt for dt, _ in ctx.factors], dtype=float),
                 "base_its": -1 if ctx.base_its is None else int(ctx.base_its), "uses": int(ctx.uses),
                 "stale": int(ctx.stale), "rebuilds": int(ctx.rebuilds), "rebuild_its": float(ctx.rebuild_its),
@@ -120,12 +125,13 @@ class Stepper:
         dts = np.atleast_1d(np.asarray(rec["factor_dt"], dtype=float))
         op = sphere_constraints(lp.local, StepOperator(lp.local, self.params_local, dts[0] if len(dts) else 0.0,
                                                        lp, self.q_force, self.coupling), self.lock_spheres)
-        with self.timers.stage("pc_blocks"):
-            ctx.parts = ctx.block_parts(op)
-        ctx.parts_key, ctx.parts_lp, ctx.factors = (op.N, op.p), lp, []
+        ctx.parts, ctx.factors, ctx.lu = None, [], None
+        ctx.build_parts(op)
         for dt in dts:
             op.dt = float(dt)
             ctx._factors_for(op)
+        if not ctx.keep_parts:
+            ctx.parts = None
         base = int(rec["base_its"])
         ctx.base_its, ctx.uses, ctx.stale = (None if base < 0 else base), int(rec["uses"]), bool(rec["stale"])
         ctx.rebuilds, ctx.rebuild_its, ctx.excess_its = int(rec["rebuilds"]), float(rec["rebuild_its"]), int(rec["excess_its"])
@@ -147,14 +153,35 @@ class Stepper:
         cache = self._lp_cache
         lp = next((c[1] for c in cache if c[0] == key and c[1].surface is surface), None)
         if lp is None:
+            self._evict(self.lp_cache_size - 1)  # room first: the evicted are freed before the new set-up
             lp = LayerPotentials(surface, lam=self.params.lam, viscosity=self.params.mu,
                                  settings=self.lp_settings, timers=self.timers, part=self.part)
         else:
             cache.remove((key, lp))
         cache.append((key, lp))                 # most recently used last
-        del cache[:-self.lp_cache_size]
+        self._evict(self.lp_cache_size)
         op = StepOperator(lp.local, self.params_local, dt, lp, self.q_force, self.coupling, self._wall_coupling(lp))
         return lp, op
+
+    def _evict(self, keep):
+        """Keep the layer potentials of the `keep` most recent surfaces and of lp_pinned; drop the
+        other references to those evicted (the last solve's, the Mat's operator), so that they
+        are freed now."""
+        cache = self._lp_cache
+        pinned = [c for c in cache if self.lp_pinned is not None and c[1].surface is self.lp_pinned]
+        rest = [c for c in cache if c not in pinned]
+        cache[:] = pinned + (rest[len(rest) - keep:] if keep > 0 else [])
+        alive = [c[1] for c in cache]
+        for _, lp in rest:                      # the geometries of the surfaces evicted (not the stepper's own)
+            if all(lp is not a for a in alive) and lp.surface is not getattr(self, "_surface", None):
+                lp.surface.release_geometry()
+        if all(self.lp_last is not lp for lp in alive):
+            self.lp_last = None
+        if all(self.lp_current is not lp for lp in alive):
+            self.lp_current = None
+        old = self._ksp[0].getPythonContext() if self._ksp is not None else None
+        if old is not None and all(getattr(old, "lp", None) is not lp for lp in alive):
+            old.lp = None                       # that operator is replaced at this solve (_solver)
 
     def _wall_coupling(self, lp):
         """The container's coupling to the vesicles of lp's geometry (kept with lp), None without a wall."""
@@ -311,7 +338,7 @@ class Stepper:
     def default_pc_context(self):
         """The block-Jacobi PC context, kept across solves (it reuses LU factors, -ves_pc_lag)."""
         if getattr(self, "_pc_context", None) is None:
-            self._pc_context = _default_pc(self.pc_precision)
+            self._pc_context = _default_pc(self.pc_precision, self.pc_factors, self.pc_parts)
         return self._pc_context
 
     def default_ksp_type(self):
@@ -437,8 +464,8 @@ def residual_modes(op, r, bnorm, x=None):
     return out
 
 
-def _default_pc(precision=None):
-    return BlockJacobi(precision=precision)
+def _default_pc(precision=None, factors=None, parts=None):
+    return BlockJacobi(precision=precision, factors=factors, parts=parts)
 
 
 def _reason_name(reason):

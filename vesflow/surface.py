@@ -137,6 +137,10 @@ class Surface:
             self._geo[q] = Geometry(self.coeffs, self.p, q)
         return self._geo[q]
 
+    def release_geometry(self):
+        """Forget the cached geometries (computed again, identically, if asked for)."""
+        self._geo = {}
+
     def points(self, q=None):
         """Positions on the q-grid (N, npts, 3)."""
         return self.geometry(q).X

@@ -106,7 +106,8 @@ class SDC:
         self.first = 0 if quadrature == "lobatto" else 1           # first quadrature node
         self.S = integration_matrix(self.tau, self.tau[self.first:])
         self.sweeps = int(sweeps)
-        stepper.lp_cache_size = max(stepper.lp_cache_size, nodes)   # X_0 reused by every sweep
+        # X_0's layer potentials are reused by every sweep (Stepper.lp_pinned, set per step); the
+        # other nodes' solves at one geometry follow each other (the velocity, then the step)
         self.iterations = 0
         self.error = None                 # d_K of the last step: the error of K - 1 sweeps (-ves_adapt sweeps)
         self.contraction_error = None     # error_estimate of the last step (-ves_adapt contraction)
@@ -132,6 +133,7 @@ class SDC:
         h = dt * np.diff(self.tau)
         self.iterations = 0
         surf = [st.surface]
+        st.lp_pinned = surf[0] if st.pin_start else None
         F = [self._solve(0.0, surf[0]) if self.first == 0 else None]
         for m in range(M):                                  # provisional: first-order steps
             u = self._solve(h[m], surf[m]).u
