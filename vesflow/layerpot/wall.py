@@ -40,7 +40,8 @@ WALL_ID = -2          # the source id of the wall's points (no target carries it
 NEAR_WIDTH = 0.45
 # the default degree of the wall's smooth and near-singular rules, q_w = Q_FACTOR p_w: with 2 p_w
 # (the vesicles' rule) h_w = sqrt(A_w / q_w) scales with the container, and a vesicle 0.3 from a wall
-# of radius 3 settles 2.4 % too fast (p_w = 16); 4 p_w: 0.5 %, 6 p_w: 0.16 % (docs/explanation/walls.md)
+# of radius 3 settles 2.4 % too fast (p_w = 16); 4 p_w: 0.5 %, 6 p_w: 0.16 % (experiments/container_near_wall.py,
+# docs/explanation/walls.md)
 Q_FACTOR = 4
 
 
