@@ -49,7 +49,10 @@ from .layerpot.evaluator import (APPLIES_PER_SETUP, NEAR_MAP_MB, OWN_GEMV_BYTE, 
                                  LayerPotentials, Settings)
 from .layerpot.nearmap import map_bytes_per_pair
 from .layerpot.near import near_distance, near_pairs_images
+from .layerpot.wall import Q_FACTOR as WALL_Q_FACTOR
 from .parallel import Partition
+from .scene.geometry import _ellipsoid_area
+from .scene.packing import wall_distance
 from .setup_state import initial_coefficients
 from .surface import Surface
 
@@ -409,7 +412,8 @@ def estimate(scene, opts=None, near=True, calibration=None):
     t_setup = (N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
                + t_near_setup)
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
-    wall = _wall_cost(scene, p, q, cal, threads, float(o.get("near_factor") or 1.0), dl) if scene.wall else {}
+    wall = (_wall_cost(scene, p, q, cal, threads, float(o.get("near_factor") or 1.0), dl, o.get("wall_q"))
+            if scene.wall else {})
     near_per = (max(pairs, 0) if pairs >= 0 else NEAR_PAIRS_ASSUMED * N) / N if N > 1 else 0.0
     modes = float(np.prod(chosen["ewald"]["modes"])) if chosen is not None and chosen.get("ewald") else 0.0
     memo = {k: o.get(k) for k in MEMORY_OPTIONS + ("memory_limit", "ts_type", "coupling", "adapt", "ts_sdc_nodes", "ts_sdc_quadrature")}
@@ -423,18 +427,15 @@ def estimate(scene, opts=None, near=True, calibration=None):
                     t_near_setup=t_near_setup, near_mapped=mapped, **wall)
 
 
-def _wall_cost(scene, p, q, cal, threads, near_factor, double_layer):
+def _wall_cost(scene, p, q, cal, threads, near_factor, double_layer, wall_q=None):
     """A container's share (docs/explanation/walls.md): per GMRES iteration the vesicles' layers
     at the wall's M_w points (direct, N Mq M_w pairs, x 2 with the double layer), the wall's
     smooth rule at the vesicles' points (Q_w N M pairs), the near blocks of the vesicle points
     within h_w (9 Q_w evaluations each) and the wall block's GEMV; once: its self operator
     (one vesicle's set-up at degree p_w) and LU; memory: D_w, the block and its LU."""
-    from .scene.geometry import _ellipsoid_area  # lazy: only scenes with a [wall]
-    from .scene.packing import wall_distance  # lazy: only scenes with a [wall]
-
     w, N = scene.wall, scene.n_vesicles
     pw = w.p
-    Cw, Mw, qw = (pw + 1) ** 2 - 1, 2 * pw * (pw + 1), 2 * pw
+    Cw, Mw, qw = (pw + 1) ** 2 - 1, 2 * pw * (pw + 1), int(wall_q or WALL_Q_FACTOR * pw)
     Qw, M, Mq = 2 * qw * (qw + 1), 2 * p * (p + 1), 2 * q * (q + 1)
     h_w = float(near_distance([_ellipsoid_area(w.axes)], qw, near_factor)[0])
     pts = Surface(initial_coefficients(scene), p).points().reshape(-1, 3)

@@ -100,6 +100,9 @@ REGISTRY: tuple[Option, ...] = (
        ge=2, le=256, default_text="4p"),
     _O("-ves_near_factor", float, 1.0, "near-zone width h_n = factor * sqrt(A_max / q_near)", "quadrature",
        gt=0, le=10),
+    _O("-ves_wall_q", int, None, "upsampled degree q_w of a container's smooth and near-singular rules ([wall]; "
+       "its near zone h_w = factor * sqrt(A_w / q_w), docs/explanation/walls.md)", "quadrature", ge=8, le=512,
+       default_text="4 p_w"),
     _O("-ves_near_blend", float, 0.0, "blend the near-singular value into the smooth rule over "
        "h_n .. h_n (1 + blend) (C^2 weight) instead of switching at h_n: a velocity smooth in the positions, "
        "which high-order time steps need (docs/explanation/dynamics.md); 0 = switch", "quadrature", ge=0, le=1),

@@ -102,7 +102,7 @@ class Run(Driver):
         if self.part.size > 1:
             raise SettingsError(f"[wall]: walls need one rank (this run has {self.part.size} MPI ranks)")
         with self.timers.stage("wall_setup"):
-            return Wall(wall_coefficients(scene.wall), scene.wall.p, near_factor=opts["near_factor"])
+            return Wall(wall_coefficients(scene.wall), scene.wall.p, q_far=opts["wall_q"], near_factor=opts["near_factor"])
 
     @property
     def quad_errors(self):
@@ -124,7 +124,7 @@ def check_available(scene, opts):
         if opts["coupling"] != "implicit":
             raise SettingsError(f"-ves_coupling {opts['coupling']}: a [wall] needs the implicit coupling")
         w = scene.wall
-        check_wall_degree(Surface(wall_coefficients(w)[None], w.p), w.p, near_factor=opts["near_factor"])
+        check_wall_degree(Surface(wall_coefficients(w)[None], w.p), w.p, opts["wall_q"], opts["near_factor"])
     if scene.domain is not None and opts["far"] not in ("auto", "ewald"):
         raise NumericalFailure(f"-ves_far {opts['far']}: a periodic domain ([domain]) needs the Ewald far "
                                "field; use -ves_far ewald or auto")

@@ -51,7 +51,7 @@ def errors(kind, p):
 # slow variant prints the whole table of docs/explanation/walls.md
 DEGREES = {"sphere": (8, 12, 16), "ellipsoid": (12, 16)}
 DEGREES_SLOW = {"sphere": (8, 12, 16, 24), "ellipsoid": (12, 16, 20, 24)}
-TOL = {"sphere": (0.5, 5e-4), "ellipsoid": (1e-2, 2e-4)}
+TOL = {"sphere": (1e-2, 2e-4), "ellipsoid": (1e-3, 5e-5)}
 
 
 def convergence(kind, degrees):
@@ -64,7 +64,7 @@ def convergence(kind, degrees):
     lo, hi = degrees[0], degrees[-1]
     assert max(table[lo].values()) < TOL[kind][0]
     assert max(table[hi].values()) < TOL[kind][1]
-    assert max(table[hi].values()) < 0.02 * max(table[lo].values())
+    assert max(table[hi].values()) < 0.1 * max(table[lo].values())
 
 
 @pytest.mark.parametrize("kind", ["sphere", "ellipsoid"])
@@ -79,8 +79,11 @@ def test_interior_stokes_problem_table(kind):
 
 
 def test_too_low_a_wall_degree_is_refused():
-    with pytest.raises(SettingsError, match=r"wall.p = 8: too low .* use wall.p >= 1[01]"):
-        container("ellipsoid", 8)
+    """h_w = sqrt(A_w / q_w) must stay below 0.45 of the width: with q_w = 2 p_w the ellipsoid
+    needs q_w >= 22 (p_w = 11 at that ratio; 6 with the default q_w = 4 p_w)."""
+    with pytest.raises(SettingsError, match=r"wall.p = 8, -ves_wall_q 16: too low .* use -ves_wall_q >= 2[12] "
+                                            r"\(or wall.p >= 6 with the default q_w = 4 p_w\)"):
+        Wall(wall_coefficients(WallScene("ellipsoid", (2.2, 1.8, 1.6), rotation=(10.0, 20.0, 30.0), p=8)), 8, q_far=16)
 
 
 def test_completion_makes_the_interior_operator_regular():

@@ -155,14 +155,18 @@ def test_repulsion_from_the_wall_pushes_a_vesicle_back():
 
 def test_check_estimates_the_wall():
     """`vesflow check`'s estimate has the wall's share (vesflow.costs._wall_cost): its memory is
-    3 (3 C_w)^2 doubles and it counts the vesicle points within h_w = sqrt(A_w / 2 p_w)."""
+    3 (3 C_w)^2 doubles and it counts the vesicle points within h_w = sqrt(A_w / q_w), q_w = 4 p_w."""
     from vesflow import costs
-    sc = parse_scene(SCENE.format(center="[0.0, 0.0, 0.0]"))
+    from vesflow.surface import Surface
+    sc = parse_scene(SCENE.format(center="[0.0, 0.0, 1.0]"))
     est = costs.estimate(sc)
     Cw = 13 ** 2 - 1
     assert est.wall_p == 12 and est.mem_wall == 3 * (3 * Cw) ** 2 * 8 and est.t_wall > 0
-    h_w = np.sqrt(4 * np.pi * 9 / 24)                               # 2.17: the unit sphere at the centre is 2 away
-    assert h_w > 2.0 and est.wall_near_points == 2 * 16 * 17        # every point of the p = 16 sphere
+    h_w = np.sqrt(4 * np.pi * 9 / 48)                               # 1.53
+    X = Surface(shapes.make_shape("sphere", 16, center=(0.0, 0.0, 1.0))[None], 16).points().reshape(-1, 3)
+    near = np.count_nonzero(3.0 - np.linalg.norm(X, axis=1) < h_w)
+    assert 0 < near < len(X) and est.wall_near_points == near
+    assert costs.estimate(sc, {"wall_q": 96}).wall_near_points < near           # a finer rule: a thinner zone
     free = costs.estimate(parse_scene("[[vesicle]]\n"))
     assert free.wall_p == 0 and free.t_wall == 0 and "wall" not in str(free) and "wall     p_w = 12" in str(est)
 

@@ -38,21 +38,28 @@ WALL_ID = -2          # the source id of the wall's points (no target carries it
 # the near zone h_w at most this fraction of the container's width (twice the smallest distance
 # from its centroid to its points): the line points Y0 - n s, s in [h_w, 2 h_w], stay in the fluid
 NEAR_WIDTH = 0.45
+# the default degree of the wall's smooth and near-singular rules, q_w = Q_FACTOR p_w: with 2 p_w
+# (the vesicles' rule) h_w = sqrt(A_w / q_w) scales with the container, and a vesicle 0.3 from a wall
+# of radius 3 settles 2.4 % too fast (p_w = 16); 4 p_w: 0.5 %, 6 p_w: 0.16 % (experiments/container_near_wall.py,
+# docs/explanation/walls.md)
+Q_FACTOR = 4
 
 
 def check_degree(surface, p, q_far=None, near_factor=1.0):
     """(h_w, width) of a wall surface of degree p, or a SettingsError naming the smallest valid
-    wall.p when its near zone h_w = near_factor sqrt(A_w / q_w) exceeds NEAR_WIDTH of its width."""
-    q_far = q_far or 2 * p
+    wall.p (or -ves_wall_q) when its near zone h_w = near_factor sqrt(A_w / q_w) exceeds NEAR_WIDTH
+    of its width (q_w = q_far, default Q_FACTOR p)."""
+    q_far = q_far or Q_FACTOR * p
     area = float(surface.area(q_far)[0])
     pts = surface.points().reshape(-1, 3)
     width = 2.0 * float(np.linalg.norm(pts - pts.mean(axis=0), axis=1).min())
     h = float(nearmod.near_distance([area], q_far, near_factor)[0])
     if h > NEAR_WIDTH * width:
-        p_min = int(np.ceil(near_factor ** 2 * area / (2.0 * (NEAR_WIDTH * width) ** 2)))
-        raise SettingsError(f"wall.p = {p}: too low for this container (its near zone h_w = {h:.3g} would "
-                            f"exceed {NEAR_WIDTH:g} of its width {width:.3g}, the line points of the "
-                            f"near-singular rule would leave the fluid); use wall.p >= {p_min}")
+        q_min = int(np.ceil(near_factor ** 2 * area / (NEAR_WIDTH * width) ** 2))
+        raise SettingsError(f"wall.p = {p}, -ves_wall_q {q_far}: too low for this container (its near zone "
+                            f"h_w = {h:.3g} would exceed {NEAR_WIDTH:g} of its width {width:.3g}, the line points "
+                            f"of the near-singular rule would leave the fluid); use -ves_wall_q >= {q_min} "
+                            f"(or wall.p >= {-(-q_min // Q_FACTOR)} with the default q_w = {Q_FACTOR} p_w)")
     return h, width
 
 
@@ -60,11 +67,13 @@ class Wall:
     """The container Gamma of degree p (position coefficients (3, C)), its operators (W.2)."""
 
     def __init__(self, coeffs, p, q_self=None, q_far=None, near_factor=1.0):
+        """q_self: the singular quadrature's degree (2 p); q_far: that of the smooth and near-singular
+        rules (Q_FACTOR p, -ves_wall_q)."""
         coeffs = np.asarray(coeffs, dtype=float).reshape(3, sph.n_coeffs(p))
         self.p, self.C = p, sph.n_coeffs(p)
         self.surface = Surface(coeffs[None], p)
         self.q_self = q_self or 2 * p
-        self.q_far = q_far or 2 * p
+        self.q_far = q_far or Q_FACTOR * p
         self.Tp, self.Tq = sph.transform(p), sph.transform(p, self.q_far)
         self.points = np.ascontiguousarray(self.surface.points().reshape(-1, 3))     # p-grid: the collocation targets
         gq = self.surface.geometry(self.q_far)
