@@ -127,3 +127,17 @@ class Contacts:
     @property
     def count(self):
         return len(self.log)
+
+    def as_checkpoint(self):
+        """What a restart needs to continue as the uninterrupted run: the in-contact flag (a
+        restart from a state in the zone that was never separated must not start watching it)
+        and the record of the separations (N, 3)."""
+        return {"watch": int(self.watch), "log": np.array(self.log, dtype=float).reshape(-1, 3)}
+
+    def restore(self, ck):
+        """Continue from as_checkpoint()'s dict (a file without it keeps the start-gap rule of
+        __init__)."""
+        if ck is None:
+            return
+        self.watch = bool(int(ck["watch"]))
+        self.log = [tuple(float(x) for x in row) for row in np.asarray(ck["log"], dtype=float).reshape(-1, 3)]

@@ -23,6 +23,7 @@ import sys
 import time
 
 import numpy as np
+from scipy.optimize import nnls
 
 from . import options as optmod, planner, scene as scenemod, study
 from .errors import NumericalFailure, SceneError, VesflowError
@@ -67,13 +68,28 @@ def run_setting(scene, setting, horizon=None):
         per_try *= (opts["ts_sdc_nodes"] - 1) * (2 * opts["ts_sdc_sweeps"] + 1) + (opts["ts_sdc_quadrature"] == "lobatto")
     out = {"setting": setting.options(), "status": status, "horizon": sc.time.horizon, "cpu": cpu, "wall": wall,
            "solves": per_try * len(rec.steps), "accepted": sum(1 for r in rec.steps if r[2]),
-           "rejected": sum(1 for r in rec.steps if not r[2]), "final": None}
+           "rejected": sum(1 for r in rec.steps if not r[2]), "final": None,
+           "floor_tol": floor_tol(rec.steps, planner.fewest_steps(sc.time.horizon, sc.time.dt),
+                                  opts["adapt_beta"], run.integrator.order) if run is not None else None}
     if run is not None and status == "ok":
         S = run.stepper.surface
         ext = np.linalg.norm(S.points() - S.centroid()[:, None, :], axis=-1).max(axis=1)
         out["final"] = {"centroid": run.unwrapped_centroid().tolist(), "length": (2 * ext).tolist(),
                         "axes": semi_axes(S).tolist()}
     return out
+
+
+def floor_tol(steps, fewest, beta, order):
+    """The smallest E/T at which a run that took exactly the fewest steps (each accepted, dt
+    doubling) takes the same steps: every step's err / dt <= E/T, and every step but the last
+    (which lands on the horizon) proposes 2 dt, beta ((E/T) dt / err)^(1/k) >= 2 (vesflow.stepping.
+    Adaptor.next_dt).  None if the run took more steps.  steps: the rows (t, dt, accepted, its,
+    err, ...)."""
+    if len(steps) != fewest or not all(r[2] for r in steps):
+        return None
+    rate = [max(float(r[4]), 0.0) / float(r[1]) for r in steps]
+    grow = (2.0 / beta) ** order
+    return max([x * grow for x in rate[:-1]] + [rate[-1]])
 
 
 def distance(res, ref, period=None):
@@ -199,8 +215,11 @@ def calibrate(scene, pl, fraction=1.0, log=print, cache_dir=None):
     sets = {k: planner.Setting(s, p, tol, 2 * p, 2 * p, R) for k, (s, p, tol) in runs.items()}
     sub = optmod.apply_overrides(scene, optmod.dict_getter({"-ts_max_time": t_p}))
     sub_pl = planner.Planner(sub, m0)
+    if sub_pl._solve_cost(sets["euler_lo"])[1] not in ("none", "direct"):
+        # a far field with a tolerance: a fifth pilot at the loosest, the cost at another t_solve of one p
+        sets["euler_lo_far"] = planner.replace(sets["euler_lo"], far_tol=planner.FAR_TOLS[0])
     predicted = sum(sub_pl.predict(s).seconds for s in sets.values())
-    log(f"pilot    4 runs to t = {t_p:g} ({fraction:g} of T): predicted {predicted:.3g} s CPU")
+    log(f"pilot    {len(sets)} runs to t = {t_p:g} ({fraction:g} of T): predicted {predicted:.3g} s CPU")
     c0 = time.process_time()
     if cache_dir is None:
         out = {k: run_setting(scene, s, t_p) for k, s in sets.items()}
@@ -222,20 +241,47 @@ def calibrate(scene, pl, fraction=1.0, log=print, cache_dir=None):
     m.f_time = {"sdc": clip(e_sdc / m0.e_time("sdc", PILOT_TOL, t_p)),
                 "euler": clip(e_eul / m0.e_time("euler", PILOT_TOL, t_p))}
     m.f_space = clip(e_sp / max(s_lo - s_hi, 1e-300))
-    for scheme, keys in (("sdc", ("sdc_lo", "sdc_hi")), ("euler", ("euler_lo",))):
+    m.split = cost_split(scene, sub_pl, sets, out)
+    whole = t_p >= scene.time.horizon * (1 - 1e-12)
+    for scheme in planner.SCHEMES:
+        keys = [k for k in sets if sets[k].scheme == scheme]
         # above the fewest steps only (a pilot that took them says nothing about the rate)
         floor = planner.SOLVES_PER_STEP[scheme] * planner.fewest_steps(t_p, scene.time.dt)
         m.f_solves[scheme] = clip(np.mean([max(out[k]["solves"], floor) / m0.solves(scheme, sets[k].tol, t_p)
-                                           for k in keys]))
+                                           for k in keys if k in ("sdc_lo", "sdc_hi", "euler_lo")]))
+        # where every pilot of the scheme took the fewest steps over the whole horizon: from which E/T on
+        fl = [out[k].get("floor_tol") for k in keys]
+        m.floor_tol[scheme] = max(fl) if whole and all(x is not None for x in fl) else None
         m.f_cost[scheme] = clip(np.exp(np.mean([np.log(out[k]["cpu"] / out[k]["solves"] /
-                                                      m0.seconds_per_solve(scheme, sub_pl._solve_cost(sets[k])[0],
-                                                                           scene.n_vesicles)) for k in keys])))
+                                                      m.seconds_per_solve(scheme, sub_pl._solve_cost(sets[k])[0],
+                                                                          scene.n_vesicles)) for k in keys])))
     spent = sum(r["cpu"] for r in out.values()) if cache_dir else time.process_time() - c0
-    m.pilot = (f"calibrated by 4 pilot runs to t = {t_p:g} ({spent:.3g} s CPU): factors spatial {m.f_space:.2g}, "
+    fewest = " / ".join(f"{s} " + (f"E/T >= {m.floor_tol[s]:.2g}" if m.floor_tol[s] is not None else "-")
+                        for s in planner.SCHEMES)
+    m.pilot = (f"calibrated by {len(sets)} pilot runs to t = {t_p:g} ({spent:.3g} s CPU): factors spatial {m.f_space:.2g}, "
                f"time sdc {m.f_time['sdc']:.2g} / euler {m.f_time['euler']:.2g}, solves sdc {m.f_solves['sdc']:.2g} / "
-               f"euler {m.f_solves['euler']:.2g}, cost sdc {m.f_cost['sdc']:.2g} / euler {m.f_cost['euler']:.2g}")
+               f"euler {m.f_solves['euler']:.2g}, fewest steps {fewest}, cost split alpha {m.split[0]:.2g} / beta "
+               f"{m.split[1]:.2g}, cost sdc {m.f_cost['sdc']:.2g} / euler {m.f_cost['euler']:.2g}")
     log(f"pilot    {m.pilot}")
     return m
+
+
+def cost_split(scene, pl, sets, out):
+    """(alpha, beta) of the scene's cost per solve alpha k t_solve + beta c N (k, c: the study's,
+    fitted on two vesicles) from the pilots' CPU per solve: non-negative least squares in the
+    relative residuals (the pilots differ in t_solve by p and, for a far field with a tolerance,
+    by it; all have the scene's N).  (1, 1) where the pilots do not determine both (fewer than
+    two values of t_solve, or alpha = 0)."""
+    rows, y = [], []
+    for key, s in sets.items():
+        c = pl.model.fit["cost"][s.scheme]
+        rows.append([c["k"] * pl._solve_cost(s)[0], c["c"] * scene.n_vesicles])
+        y.append(out[key]["cpu"] / out[key]["solves"])
+    A, y = np.array(rows), np.array(y)
+    if len({round(pl._solve_cost(s)[0], 12) for s in sets.values()}) < 2:
+        return (1.0, 1.0)
+    (al, be), _ = nnls(A / y[:, None], np.ones_like(y))
+    return (float(al), float(be)) if al > 0 else (1.0, 1.0)
 
 
 # ----------------------------------------------------------------------------- verification

@@ -11,7 +11,7 @@ is modelled as the sum of a spatial and a time part (docs/explanation/planner.md
 and its time (CPU seconds of one thread) as the solves it takes times what one solve costs:
 
     solves = max(s T (E/T / 1e-2)^-b, n_step n_min)   per scheme; n_min: the fewest steps (fewest_steps)
-    time = solves [k t_solve(p) + c N]          t_solve: vesflow.costs (the model of `vesflow check`)
+    time = solves [alpha k t_solve(p) + beta c N]   t_solve: vesflow.costs (the model of `vesflow check`)
 
 The constants (FIT) are fitted by vesflow.plan_fit to the study's cases; f_s, f_t and a factor on
 the time are 1 unless pilot runs (`--pilot`) measured them on the scene itself.  The search
@@ -106,6 +106,10 @@ class Model:
     f_time: dict = field(default_factory=lambda: {"euler": 1.0, "sdc": 1.0})
     f_solves: dict = field(default_factory=lambda: {"euler": 1.0, "sdc": 1.0})
     f_cost: dict = field(default_factory=lambda: {"euler": 1.0, "sdc": 1.0})
+    # the scene's split of a solve's cost (pilots): alpha k t_solve + beta c N
+    split: tuple = (1.0, 1.0)
+    # per scheme, the smallest E/T at which the pilot took exactly the fewest steps (None: unknown)
+    floor_tol: dict = field(default_factory=lambda: {"euler": None, "sdc": None})
     pilot: str = ""                 # what calibrated the factors ("": the study's constants)
 
     def e_space(self, p, horizon):
@@ -124,14 +128,22 @@ class Model:
 
     def solves(self, scheme, tol, horizon, dt0=None):
         """The fitted count, and at least the solves of the fewest steps that reach the horizon
-        (dt0: the scene's first step; the step grows at most 2x per accepted step)."""
+        (dt0: the scene's first step; the step grows at most 2x per accepted step).  Where a
+        pilot over the whole horizon took the fewest steps, their solves n_min from E/T =
+        floor_tol up and n_min (E/T / floor_tol)^-b below it."""
         s = self.fit["solves"][scheme]
+        floor = SOLVES_PER_STEP[scheme] * fewest_steps(horizon, dt0) if dt0 else 0
+        ft = self.floor_tol.get(scheme)
+        if ft is not None and floor:
+            return float(floor) if tol >= ft else floor * (tol / ft) ** (-s["b"])
         n = self.f_solves[scheme] * s["s"] * horizon * (tol / 1e-2) ** (-s["b"])
-        return max(n, SOLVES_PER_STEP[scheme] * fewest_steps(horizon, dt0)) if dt0 else n
+        return max(n, floor) if dt0 else n
 
     def seconds_per_solve(self, scheme, t_solve, n_vesicles):
-        c = self.fit["cost"][scheme]
-        return self.f_cost[scheme] * (c["k"] * t_solve + c["c"] * n_vesicles)
+        """f_c (alpha k t_solve + beta c N): k, c the study's (per scheme), alpha, beta the
+        scene's split (1, 1 without pilots)."""
+        c, (al, be) = self.fit["cost"][scheme], self.split
+        return self.f_cost[scheme] * (al * c["k"] * t_solve + be * c["c"] * n_vesicles)
 
 
 def fewest_steps(horizon, dt0):

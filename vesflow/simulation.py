@@ -74,6 +74,8 @@ class Run(Driver):
         self.quadrature = QuadratureAdaptor(self.stepper, opts["quad_tol"], opts["q_max"], self.timers)
         self.contacts = (Contacts(self.p, self.period, state.coeffs, opts["q_near"])   # vesflow.contact
                          if opts["contact"] and opts["collision"] and scene.n_vesicles > 1 else None)
+        if checkpoint is not None and self.contacts is not None:
+            self.contacts.restore(checkpoint.get("contact"))
         self.monitors = (([StepLog(log)] if monitor else []) + ([Progress()] if progress else [])
                          + ([Frames(writer), Checkpoints(writer)] if writer is not None else []))
         self.progress, self.monitor = progress, monitor

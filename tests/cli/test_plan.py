@@ -189,3 +189,48 @@ def test_pilot_factors_are_measured_over_predicted(one, monkeypatch):
     assert e.e_time == pytest.approx(2e-3) and e.solves == pytest.approx(30)
     assert e.seconds == pytest.approx(0.05 * 30)
     assert "4 pilot runs" in m.pilot
+
+
+def test_floor_tol_is_where_the_fewest_steps_stop_being_taken():
+    """Steps of dt 0.1, 0.2, 0.4 (doubling, the last landing) with err / dt = 1e-3, 2e-3, 5e-3:
+    every step but the last must propose 2 dt, beta (E/T dt / err)^(1/k) >= 2, so E/T >=
+    (err / dt) (2 / beta)^k; the last only needs err / dt <= E/T.  A run that took more steps
+    than the fewest has no such E/T."""
+    from vesflow import plan_fit
+    rows = [(0.0, 0.1, 1, 5, 1e-4, "accepted"), (0.1, 0.2, 1, 5, 4e-4, "accepted"), (0.3, 0.4, 1, 5, 2e-3, "accepted")]
+    assert plan_fit.floor_tol(rows, 3, 0.9, 2) == pytest.approx(2e-3 * (2 / 0.9) ** 2)
+    assert plan_fit.floor_tol(rows[:2] + [(0.3, 0.4, 1, 5, 9e-3, "accepted")], 3, 0.9, 1) == pytest.approx(9e-3 / 0.4)
+    assert plan_fit.floor_tol(rows, 2, 0.9, 2) is None
+    assert plan_fit.floor_tol(rows[:2] + [(0.3, 0.4, 0, 5, 2e-3, "error_estimate")], 3, 0.9, 2) is None
+
+
+def test_solves_from_a_measured_floor(one):
+    """With floor_tol known (a pilot over the whole horizon took the fewest steps): the fewest
+    steps' solves from floor_tol up, whatever the fitted rate, and n_min (E/T / floor_tol)^-b below."""
+    m = synthetic(solves_euler=(1e4, 1.0), solves_sdc=(1e4, 0.5))
+    m.floor_tol = {"euler": 1e-2, "sdc": None}
+    n_min = 3 * planner.fewest_steps(1.0, 0.01)
+    assert m.solves("euler", 2e-2, 1.0, 0.01) == n_min == m.solves("euler", 1e-2, 1.0, 0.01)
+    assert m.solves("euler", 2.5e-3, 1.0, 0.01) == pytest.approx(4 * n_min)
+    assert m.solves("sdc", 1e-2, 1.0, 0.01) == pytest.approx(1e4)          # unknown: the fitted rate
+
+
+def test_pilots_split_the_cost_per_solve_between_t_solve_and_the_vesicles(one, monkeypatch):
+    """Pilots whose CPU per solve is exactly 2 k t_solve(p) + 0.5 c N (k, c the study's): the
+    calibration finds alpha = 2, beta = 0.5 (the pilots at p = 8 and 12 separate the two parts),
+    the per-scheme factors 1, and a pilot that took the fewest steps gives floor_tol."""
+    from vesflow import plan_fit
+    pl = planner.Planner(one)
+
+    def fake(scene, s, horizon):
+        c = planner.FIT["cost"][s.scheme]
+        per = 2.0 * c["k"] * pl._solve_cost(s)[0] + 0.5 * c["c"] * one.n_vesicles
+        return {"final": {"centroid": [[1e-4 * s.p, 0.0, 0.0]], "length": [2.0]}, "solves": 40, "cpu": 40 * per,
+                "status": "ok", "floor_tol": 1e-3 if s.scheme == "euler" else None}
+
+    monkeypatch.setattr(plan_fit, "run_setting", fake)
+    m = plan_fit.calibrate(one, pl, 1.0, log=lambda *a: None)
+    assert m.split == pytest.approx((2.0, 0.5), rel=1e-6)
+    assert m.f_cost["euler"] == pytest.approx(1.0, rel=1e-6) and m.f_cost["sdc"] == pytest.approx(1.0, rel=1e-6)
+    assert m.floor_tol == {"euler": 1e-3, "sdc": None}
+    assert "alpha 2 / beta 0.5" in m.pilot

@@ -166,10 +166,14 @@ class Driver:
     def checkpoint(self):
         """Everything a restart needs to take the steps this run takes from here: the state, the
         step-size proposal, the constraints, the quadrature degrees and the preconditioner's
-        record (vesflow.stepper.Stepper.preconditioner_state)."""
-        return dict(self.state.as_checkpoint(), dt=self.dt, area0=self.area0, volume0=self.volume0,
-                    next_frame=self.next_frame, n_accepted=self.n_accepted, q_self=self.q_self,
-                    q_near=self.q_near, pc=self.stepper.preconditioner_state())
+        record (vesflow.stepper.Stepper.preconditioner_state) and the contact state
+        (vesflow.contact.Contacts.as_checkpoint)."""
+        ck = dict(self.state.as_checkpoint(), dt=self.dt, area0=self.area0, volume0=self.volume0,
+                  next_frame=self.next_frame, n_accepted=self.n_accepted, q_self=self.q_self,
+                  q_near=self.q_near, pc=self.stepper.preconditioner_state())
+        if self.contacts is not None:
+            ck["contact"] = self.contacts.as_checkpoint()
+        return ck
 
     def flush_steps(self):
         if self.writer is not None and self.rows:
