@@ -63,9 +63,9 @@ NEAR_EVALS = 9                   # kernel evaluations per near pair and source p
 # per pair, layer and q-grid source (the combined kernel and the transposed synthesis); per
 # iteration, every pair (on-surface value, interpolation, scatter) at p = 16, ~p^2, plus the
 # maps' entries streamed at the self operators' GEMV bandwidth or 9 Mq kernel evaluations
-NEAR_SETUP_S_PER_PAIR = 4.5e-5
-NEAR_MAP_SETUP_S_PER_SOURCE = 3.0e-8
-NEAR_ITERATION_S_PER_PAIR = 4.5e-7
+NEAR_SETUP_S_PER_PAIR = 5.0e-5
+NEAR_MAP_SETUP_S_PER_SOURCE = 3.5e-8
+NEAR_ITERATION_S_PER_PAIR = 4.2e-7
 # GMRES iterations per solve (block preconditioner): 5.2 in runs/taylor_green.toml (575 in 37
 # doubling steps of 3 solves), 6-10 in docs/explanation/accuracy_cost.md; the paper's 1408-cell case needed
 # 139 per solve with its own preconditioner (section 4.4)

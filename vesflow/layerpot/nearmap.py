@@ -24,8 +24,8 @@ import numpy as np
 
 from .._kernels import stokes
 
-CHUNK_PAIRS = 32         # pairs per batch: their kernel rows (3.2 MB at q = 32) stay in the cache for the
-                         # transposed synthesis (42 against 53 us per pair with 128, p = 16)
+CHUNK_PAIRS = 32         # pairs per batch: their kernel rows, 3.2 MB at q = 32 (as fast as 128 in
+                         # benchmarks/near_field.py, a quarter of the temporary)
 
 
 def map_bytes_per_pair(C, layers):
