@@ -4,8 +4,8 @@ p = 16, on 1 ... 64 ranks, with vesflow's memory options one after the other.
     .venv/bin/python -m experiments.mpi_memory                      # the table of docs/explanation/parallel.md
     .venv/bin/python -m experiments.mpi_memory --ranks 1 2 4 16 64
 
-Per rank = base + Ewald grids + (vesicles it owns) x owned + (surfaces it holds) x surface
-           + (all vesicles) x rest.
+Per rank = base + Ewald grids + (vesicles it owns) x owned + (other surfaces it holds) x surface
+           + (other vesicles) x rest.
 `owned` is vesflow check's model (vesflow.costs.memory_per_vesicle: self and own smooth
 operators, preconditioner parts and LU sets, near pairs, sources and geometry, measured by
 benchmarks/memory_per_vesicle.py), base and the Ewald grids (replicated on every rank)
@@ -132,7 +132,8 @@ def main(argv=None):
         o = dict(o, **{k: v})
         sets.append((f"+ -ves_{k} {v}", dict(o)))
     print("per owned vesicle: costs.memory_per_vesicle; per rank: costs.BASE_BYTES, the Ewald grids "
-          f"(replicated), {args.rest_mb} MB per vesicle of the suspension and {args.surface_mb} MB per held surface")
+          f"(replicated), {args.rest_mb} MB per other vesicle of the suspension and {args.surface_mb} MB per other "
+          "surface held")
     print(f"{'options (cumulative)':44} {'MB/owned':>9} " + " ".join(f"{f'{R} ranks':>9}" for R in args.ranks)
           + f" {'node total (GB) at the most ranks':>34}")
     for name, o in sets:
@@ -140,8 +141,9 @@ def main(argv=None):
         per = sum(costs.memory_per_vesicle(p, 2 * p, o, False, args.near_per_vesicle, o["ewald_own"] == "smooth",
                                            own_bytes, N).values())
         grids = 16 * modes * (costs.EWALD_GRIDS * costs.layer_potentials_held(o) + costs.EWALD_GRIDS_APPLY)
-        per_rank = lambda R: (costs.BASE_BYTES + grids + math.ceil(N / R) * per + N * args.rest_mb * 2 ** 20
-                              + held[R] * args.surface_mb * 2 ** 20)
+        per_rank = lambda R: (costs.BASE_BYTES + grids + math.ceil(N / R) * per
+                              + (N - math.ceil(N / R)) * args.rest_mb * 2 ** 20
+                              + (held[R] - math.ceil(N / R)) * args.surface_mb * 2 ** 20)
         R = max(args.ranks)
         print(f"{name:44} {per / 2**20:9.1f} " + " ".join(f"{per_rank(R) / GB:9.2f}" for R in args.ranks)
               + f" {R * per_rank(R) / GB:34.1f}")

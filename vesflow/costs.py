@@ -375,7 +375,7 @@ def estimate(scene, opts=None, near=True, calibration=None):
     t_near = max(pairs, 0) * NEAR_EVALS * Mq * cal.near_s_per_eval / max(1, threads) * (2 if dl else 1)
     t_setup = N * cal.self_setup_s[0] * (p / 16) ** cal.self_setup_s[1] * (q / (2 * p)) ** 2 * (1.5 if dl else 1)
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
-    near_per = (max(pairs, 0) if pairs >= 0 else NEAR_PAIRS_ASSUMED * N) / N if N > 1 else 0.0
+    near_per = (pairs / N if near and pairs >= 0 else NEAR_PAIRS_ASSUMED) if N > 1 else 0.0
     modes = float(np.prod(chosen["ewald"]["modes"])) if chosen is not None and chosen.get("ewald") else 0.0
     memo = {k: o.get(k) for k in MEMORY_OPTIONS + ("memory_limit", "ts_type", "coupling", "adapt", "ts_sdc_nodes", "ts_sdc_quadrature")}
     return Estimate(options=memo, near_per_vesicle=near_per, ewald_modes=modes,n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
