@@ -143,7 +143,8 @@ class Estimate:
 
     def memory_peak_with(self, o, ranks=1):
         """Modelled peak of the whole run (every rank on this machine) with the options o."""
-        return int(ranks * (self.base_bytes + self.far_bytes(o))
+        setup = self.threads * SETUP_THREAD_BYTES * (self.p / 16) ** 4
+        return int(ranks * (self.base_bytes + self.far_bytes(o) + setup)
                    + self.n_vesicles * sum(self.memory_per_vesicle(o).values()))
 
     @property
@@ -489,6 +490,7 @@ NEAR_PAIR_EXTRA_BYTES = 417      # NearPairs: 2721 B per pair at p = 16, C x 8 =
 SOURCE_POINT_BYTES = 112         # points, normals x weights (and planar copies), weights, ids
 GEOMETRY_POINT_BYTES = 330       # Geometry: 41 doubles per point (the q_far and p grids of each held surface)
 TRANSIENT_FRACTION = 0.07        # the step's traced peak over the arrays held after it (75.1 / 70.4 MB, N = 16)
+SETUP_THREAD_BYTES = 120 * 2 ** 20   # one vesicle's block assembly (force matrices, A0) per set-up thread, p = 16
 EWALD_GRIDS, EWALD_GRIDS_APPLY = 5, 4     # complex mode grids held per set of layer potentials, and while applied
 NEAR_PAIRS_ASSUMED = 500       # near pairs per vesicle when they are not counted (1408 cells at 35 %: 508)
 MEMORY_OPTIONS = ("pc_precision", "ewald_own", "pc_factors", "setup_cache", "pc_parts", "self_precision")
