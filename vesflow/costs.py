@@ -55,7 +55,7 @@ NEAR_EVALS = 9                   # kernel evaluations per near pair and source p
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
 SOLVES_PER_STEP = {"doubling": 3}                 # step attempts per step: one, or one and two halves
-BASE_BYTES = 200 * 2 ** 20       # a process's peak RSS besides its vesicles (memory_per_vesicle)
+BASE_BYTES = 150 * 2 ** 20       # a process's peak RSS besides its vesicles (memory_per_vesicle)
 NEAR_COUNT_MAX_POINTS = 1_200_000                 # count the near pairs when N M is below (~8 s CPU at the limit)
 # Weights of the preconditioner's rebuild rule (pc_rebuild_iterations), in seconds of one thread:
 # forces a + b p^3 per vesicle and iteration, bytes per second of the GEMVs, block and LU per
