@@ -583,10 +583,14 @@ def fit_memory(scene, opts, ranks=1, near=None, est=None):
         return opts, None
     N, p = scene.n_vesicles, scene.p
     count = near if near is not None else N * 2 * p * (p + 1) <= 200_000
-    est = estimate(scene, opts, near=count) if est is None else est
+    ests = {opts.get("ewald_own"): estimate(scene, opts, near=count) if est is None else est}
 
     def need(o):
-        return est.memory_peak_with(o, ranks)
+        """The modelled peak with options o; the Ewald parameters follow -ves_ewald_own (a new estimate)."""
+        mode = o.get("ewald_own")
+        if mode not in ests:
+            ests[mode] = estimate(scene, o, near=count)
+        return ests[mode].memory_peak_with(o, ranks)
 
     first = need(opts)
     if first <= avail:
@@ -601,8 +605,9 @@ def fit_memory(scene, opts, ranks=1, near=None, est=None):
         if total <= avail:
             return o, (f"memory: the defaults need ~{first / 2**30:.2f} GiB, {source} {avail / 2**30:.2f} GiB: "
                        f"using {' '.join(chosen)} (~{total / 2**30:.2f} GiB)")
+    est = ests[o.get("ewald_own")]
     per = sum(est.memory_per_vesicle(o).values())
-    most = int(max(avail - est.base_bytes * ranks, 0) // max(per, 1))
+    most = int(max(avail - (need(o) - N * per), 0) // max(per, 1))
     raise NumericalFailure(
         f"memory: {N} vesicles at p = {p} need ~{need(o) / 2**30:.2f} GiB even with "
         f"{' '.join(chosen) or 'the options given'}, more than {source} {avail / 2**30:.2f} GiB: "
