@@ -29,28 +29,6 @@ import os
 GB = 2.0 ** 30
 
 
-def dense_bytes(p, double_layer=False, lu_kept=1, self_bytes=8, pc_bytes=8):
-    """Per-vesicle bytes of the dense blocks: self operator(s), PC parts, LU factors
-    (self_bytes / pc_bytes: 4 with -ves_self_precision / -ves_pc_precision single)."""
-    C = (p + 1) ** 2 - 1
-    self_ops = (2 if double_layer else 1) * (3 * C) ** 2 * self_bytes
-    parts = ((4 * C) ** 2 + (3 * C) ** 2) * pc_bytes
-    lu = lu_kept * (4 * C) ** 2 * pc_bytes
-    return self_ops, parts, lu
-
-
-def fit(traced, held2, surface, rss_base):
-    """base, owned, surface, rest (bytes): base the RSS no array accounts for (ru_maxrss minus
-    tracemalloc's peak, GB), and from tracemalloc's peaks (GB) of mpi_scaling.py --trace at
-    64 vesicles on 1 rank (T1 = 64 (owned + surface + rest)) and on 2 ranks, each holding
-    held2 surfaces (T2 = 32 owned + held2 surface + 64 rest): owned and rest, the memory per
-    vesicle of the whole suspension that every rank still holds (state, gathered velocities)."""
-    T1, T2 = (t * GB for t in traced)
-    rest = (T2 - T1 / 2 - (held2 - 32) * surface) / 32
-    owned = T1 / 64 - surface - rest
-    return rss_base * GB, owned, surface, rest
-
-
 def ewald_grid_bytes(n, p, L, tol=1e-8):
     """The mode grid vesflow would choose for n vesicles in the periodic cube of side L."""
     from vesflow.layerpot.ewald import choose_params

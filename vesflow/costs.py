@@ -71,7 +71,7 @@ NEAR_ITERATION_S_PER_PAIR = 4.2e-7
 # 139 per solve with its own preconditioner (section 4.4)
 ITERATIONS_PER_SOLVE = 8
 SOLVES_PER_STEP = {"doubling": 3}                 # step attempts per step: one, or one and two halves
-BASE_BYTES = 200 * 2 ** 20       # a process's peak RSS besides its vesicles (memory_per_vesicle)
+BASE_BYTES = 150 * 2 ** 20       # a process's peak RSS besides its vesicles (memory_per_vesicle)
 NEAR_COUNT_MAX_POINTS = 1_200_000                 # count the near pairs when N M is below (~8 s CPU at the limit)
 # Weights of the preconditioner's rebuild rule (pc_rebuild_iterations), in seconds of one thread:
 # forces a + b p^3 per vesicle and iteration, bytes per second of the GEMVs, block and LU per
@@ -167,7 +167,8 @@ class Estimate:
 
     def memory_peak_with(self, o, ranks=1):
         """Modelled peak of the whole run (every rank on this machine) with the options o."""
-        return int(ranks * (self.base_bytes + self.far_bytes(o))
+        setup = self.threads * SETUP_THREAD_BYTES * (self.p / 16) ** 4
+        return int(ranks * (self.base_bytes + self.far_bytes(o) + setup)
                    + self.n_vesicles * sum(self.memory_per_vesicle(o).values()))
 
     @property
@@ -414,7 +415,7 @@ def estimate(scene, opts=None, near=True, calibration=None):
     t_pc = N * cal.pc_setup_s[0] * (p / 16) ** cal.pc_setup_s[1]
     wall = (_wall_cost(scene, p, q, cal, threads, float(o.get("near_factor") or 1.0), dl, o.get("wall_q"))
             if scene.wall else {})
-    near_per = (max(pairs, 0) if pairs >= 0 else NEAR_PAIRS_ASSUMED * N) / N if N > 1 else 0.0
+    near_per = (pairs / N if near and pairs >= 0 else NEAR_PAIRS_ASSUMED) if N > 1 else 0.0
     modes = float(np.prod(chosen["ewald"]["modes"])) if chosen is not None and chosen.get("ewald") else 0.0
     memo = {k: o.get(k) for k in MEMORY_OPTIONS + ("memory_limit", "ts_type", "coupling", "adapt", "ts_sdc_nodes", "ts_sdc_quadrature")}
     return Estimate(options=memo, near_per_vesicle=near_per, ewald_modes=modes, n_vesicles=N, p=p, q=q, unknowns=N * 4 * C, double_layer=dl, mem_self=mem_self,
@@ -550,6 +551,7 @@ NEAR_PAIR_EXTRA_BYTES = 417      # NearPairs: 2721 B per pair at p = 16, C x 8 =
 SOURCE_POINT_BYTES = 112         # points, normals x weights (and planar copies), weights, ids
 GEOMETRY_POINT_BYTES = 330       # Geometry: 41 doubles per point (the q_far and p grids of each held surface)
 TRANSIENT_FRACTION = 0.07        # the step's traced peak over the arrays held after it (75.1 / 70.4 MB, N = 16)
+SETUP_THREAD_BYTES = 120 * 2 ** 20   # one vesicle's block assembly (force matrices, A0) per set-up thread, p = 16
 EWALD_GRIDS, EWALD_GRIDS_APPLY = 5, 4     # complex mode grids held per set of layer potentials, and while applied
 NEAR_PAIRS_ASSUMED = 500       # near pairs per vesicle when they are not counted (1408 cells at 35 %: 508)
 MEMORY_OPTIONS = ("pc_precision", "ewald_own", "pc_factors", "setup_cache", "pc_parts", "self_precision")
@@ -642,10 +644,14 @@ def fit_memory(scene, opts, ranks=1, near=None, est=None):
         return opts, None
     N, p = scene.n_vesicles, scene.p
     count = near if near is not None else N * 2 * p * (p + 1) <= 200_000
-    est = estimate(scene, opts, near=count) if est is None else est
+    ests = {opts.get("ewald_own"): estimate(scene, opts, near=count) if est is None else est}
 
     def need(o):
-        return est.memory_peak_with(o, ranks)
+        """The modelled peak with options o; the Ewald parameters follow -ves_ewald_own (a new estimate)."""
+        mode = o.get("ewald_own")
+        if mode not in ests:
+            ests[mode] = estimate(scene, o, near=count)
+        return ests[mode].memory_peak_with(o, ranks)
 
     first = need(opts)
     if first <= avail:
@@ -660,8 +666,9 @@ def fit_memory(scene, opts, ranks=1, near=None, est=None):
         if total <= avail:
             return o, (f"memory: the defaults need ~{first / 2**30:.2f} GiB, {source} {avail / 2**30:.2f} GiB: "
                        f"using {' '.join(chosen)} (~{total / 2**30:.2f} GiB)")
+    est = ests[o.get("ewald_own")]
     per = sum(est.memory_per_vesicle(o).values())
-    most = int(max(avail - est.base_bytes * ranks, 0) // max(per, 1))
+    most = int(max(avail - (need(o) - N * per), 0) // max(per, 1))
     raise NumericalFailure(
         f"memory: {N} vesicles at p = {p} need ~{need(o) / 2**30:.2f} GiB even with "
         f"{' '.join(chosen) or 'the options given'}, more than {source} {avail / 2**30:.2f} GiB: "

@@ -199,10 +199,10 @@ class _PerVesicle:
         set freed first when -ves_pc_factors are kept; with the parts dropped, the blocks are
         built again from op's geometry first: a rebuild)."""
         dt = op.dt
-        for dt_f, lu in self.factors:
+        for dt_f, kept in self.factors:
             if (dt_f == dt) or (dt_f > 0 and dt > 0 and max(dt / dt_f, dt_f / dt) <= DT_MATCH):
-                return lu
-        self.lu = None
+                return kept
+        kept = self.lu = None             # (the loop's last set would stay referenced here)
         del self.factors[:len(self.factors) - self.kept_factors + 1]
         dtype = self.dtype
         factor = lambda parts: lu_factor(self.finish_block(parts.at(dt), op).astype(dtype, copy=False),

@@ -187,3 +187,24 @@ def test_setup_cache_current_holds_one_set_and_takes_the_same_step():
     assert out[True][1:] == (6, 2) and out[False][1:] == (8, 1)
     assert np.array_equal(out[True][0], out[False][0])
     assert costs.layer_potentials_held({"ts_type": "sdc", "setup_cache": "current"}) == 1
+
+
+def test_a_new_factor_set_is_built_after_the_old_one_is_freed():
+    """-ves_pc_factors 1: at a new dt the old LU set is no longer referenced while the new one is
+    factored (no two sets held together at the peak)."""
+    from vesflow import precond
+    st = _stepper(pc_factors=1)
+    st.solve(0.02)
+    old = weakref.ref(st.default_pc_context().factors[0][1][0][0])
+    alive, orig = [], precond.lu_factor
+
+    def spy(a, **k):
+        gc.collect()
+        alive.append(old() is not None)
+        return orig(a, **k)
+    precond.lu_factor = spy
+    try:
+        st.solve(0.01)
+    finally:
+        precond.lu_factor = orig
+    assert alive == [False, False]
