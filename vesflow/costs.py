@@ -213,7 +213,7 @@ class Estimate:
         return (f"memory   ~ {self.memory_peak / 2**30:.2f} GiB at a step's peak: {mb(sum(m.values()))} MB per vesicle "
                 f"(self operators {mb(m['self'])}, Ewald own smooth operators {mb(m['own'])}, preconditioner parts "
                 f"{mb(m['pc_parts'])} and LU {mb(m['pc_factors'])} ({factor_sets(o)} set(s), {_entry(self.pc_bytes)}), "
-                f"near {mb(m['near'])}, sources and geometry {mb(m['sources'])}; {layer_potentials_held(o)} set(s) of "
+                f"near {mb(m['near'])} and its maps {mb(m['near_maps'])}, sources and geometry {mb(m['sources'])}; {layer_potentials_held(o)} set(s) of "
                 f"layer potentials) + {mb(self.base_bytes)} MB + Ewald grids {mb(self.far_bytes())} MB; arrays: self operators {mb(self.mem_self)} MiB "
                 f"(N (3C)^2 x {_entry(self.self_bytes)}{' x 2, S and D' if self.double_layer else ''})")
 
@@ -554,7 +554,7 @@ TRANSIENT_FRACTION = 0.07        # the step's traced peak over the arrays held a
 SETUP_THREAD_BYTES = 120 * 2 ** 20   # one vesicle's block assembly (force matrices, A0) per set-up thread, p = 16
 EWALD_GRIDS, EWALD_GRIDS_APPLY = 5, 4     # complex mode grids held per set of layer potentials, and while applied
 NEAR_PAIRS_ASSUMED = 500       # near pairs per vesicle when they are not counted (1408 cells at 35 %: 508)
-MEMORY_OPTIONS = ("pc_precision", "ewald_own", "pc_factors", "setup_cache", "pc_parts", "self_precision")
+MEMORY_OPTIONS = ("pc_precision", "ewald_own", "pc_factors", "setup_cache", "pc_parts", "self_precision", "near_map_mb")
 
 
 def factor_sets(o):
@@ -594,10 +594,19 @@ def memory_per_vesicle(p, q, o, double_layer=False, near_pairs_per_vesicle=0.0, 
            "pc_parts": 0 if o.get("pc_parts") == "drop" else (24 if double_layer else 15) * C ** 2 * pc_bytes,
            "pc_factors": factor_sets(o) * ((4 * C) ** 2 * pc_bytes + 4 * C * 4),
            "near": lps * near_pairs_per_vesicle * (C * 8 + NEAR_PAIR_EXTRA_BYTES),
+           # the near pairs' maps (vesflow.layerpot.nearmap), within -ves_near_map_mb per set
+           "near_maps": lps * min(near_pairs_per_vesicle * map_bytes_per_pair(C, n_ops),
+                                  _near_map_budget(o) / max(n_vesicles, 1)),
            "sources": (lps * Mq * SOURCE_POINT_BYTES if n_vesicles > 1 else 0)
            + (lps + 1) * GEOMETRY_POINT_BYTES * (Mq + 2 * p * (p + 1))}
     out["transient"] = int(TRANSIENT_FRACTION * sum(out.values()))
     return out
+
+
+def _near_map_budget(o):
+    """Bytes of near maps per set of layer potentials (-ves_near_map_mb, MB)."""
+    mb = o.get("near_map_mb")
+    return float(NEAR_MAP_MB if mb is None else mb) * 1e6
 
 
 def available_memory(limit_gib=None):
@@ -623,10 +632,11 @@ def memory_choices(o):
     (o.given): float32 preconditioner (fgmres keeps double's accuracy), no Ewald own smooth
     operators (a dearer iteration), one LU factor set (a factorization per new dt), one set of
     layer potentials (2 more set-ups per sdc step), the parts dropped (the blocks rebuilt per new
-    dt), float32 self operators (the operator rounded: 2.8e-8 of a solve)."""
+    dt), float32 self operators (the operator rounded: 2.8e-8 of a solve), no near maps (the
+    near pairs summed again at every iteration: 10-26 us per pair instead of 0.9)."""
     given = getattr(o, "given", frozenset())
     steps = [("pc_precision", "single"), ("ewald_own", "subtract"), ("pc_factors", 1), ("setup_cache", "current"),
-             ("pc_parts", "drop"), ("self_precision", "single")]
+             ("pc_parts", "drop"), ("self_precision", "single"), ("near_map_mb", 0.0)]
     return [(k, v) for k, v in steps if f"-ves_{k}" not in given and o.get(k) != v]
 
 
