@@ -10,7 +10,7 @@ the run's defaults (sdc, its adaptive step) in a process of its own (its ru_maxr
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/memory_per_vesicle.py --nves 8 16 --scenes periodic free
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/memory_per_vesicle.py --nves 8 ves_pc_precision=single
 
-Per line: the held bytes per vesicle after the step (`costs.held_memory`: the arrays the
+Per line: the held bytes per vesicle after the step (`memory_model.held_memory`: the arrays the
 stepper, its cached layer potentials and the preconditioner hold, each array counted once),
 tracemalloc's peak per vesicle and the stage it falls in, the peak RSS, and `vesflow check`'s
 model (`costs.estimate`) beside it.  Extra arguments name=value are vesflow options.
@@ -115,7 +115,7 @@ def child(args):
     from vesflow import threads
     threads.configure(1)
     from petsc4py import PETSc
-    from vesflow import costs, options as O, scene as S, timing
+    from vesflow import costs, memory_model, options as O, scene as S, timing
     from vesflow.simulation import Run
     text = scene_text(args.scene, args.n, args.p, args.dt)
     sc = S.parse_scene(text)
@@ -135,7 +135,7 @@ def child(args):
     run.run()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     peaks.mark()
-    held = costs.held_memory(run.stepper) if hasattr(costs, "held_memory") else {"total": 0}   # (older versions)
+    held = memory_model.held_memory(run.stepper)
     cur, _ = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     N = sc.n_vesicles

@@ -6,7 +6,7 @@ p = 16, on 1 ... 64 ranks, with vesflow's memory options one after the other.
 
 Per rank = base + Ewald grids + (vesicles it owns) x owned + (other surfaces it holds) x surface
            + (other vesicles) x rest.
-`owned` is vesflow check's model (vesflow.costs.memory_per_vesicle: self and own smooth
+`owned` is vesflow check's model (vesflow.memory_model.memory_per_vesicle: self and own smooth
 operators, preconditioner parts and LU sets, near pairs, sources and geometry, measured by
 benchmarks/memory_per_vesicle.py), base and the Ewald grids (replicated on every rank)
 likewise; `rest` (0.50 MB per vesicle of the suspension: the replicated state at a step's peak)
@@ -136,7 +136,7 @@ def main(argv=None):
                     help="-ves_ewald_grid: the Ewald grid on every rank (replicated) or in z-slabs over the ranks "
                          "(distributed: grid / ranks plus the ghost planes of a rank's box, distributed_grid_bytes)")
     args = ap.parse_args(argv)
-    from vesflow import costs
+    from vesflow import costs, memory_model
     held, distance, _, layout = held_surfaces(args.scene, sorted(set(args.ranks) | {1}))
     p, N = args.p, held[1]
     prm, L, _ = ewald_grid_bytes(N, p, args.period)
@@ -157,16 +157,16 @@ def main(argv=None):
                  ("pc_parts", "drop"), ("self_precision", "single")]:
         o = dict(o, **{k: v})
         sets.append((f"+ -ves_{k} {v}", dict(o)))
-    print("per owned vesicle: costs.memory_per_vesicle; per rank: costs.BASE_BYTES, the Ewald grids "
+    print("per owned vesicle: memory_model.memory_per_vesicle; per rank: costs.BASE_BYTES, the Ewald grids "
           f"({args.ewald_grid}), {args.rest_mb} MB per other vesicle of the suspension and {args.surface_mb} MB per other "
           "surface held")
     print(f"{'options (cumulative)':44} {'MB/owned':>9} " + " ".join(f"{f'{R} ranks':>9}" for R in args.ranks)
           + f" {'node total (GB) at the most ranks':>34}")
     for name, o in sets:
         own_bytes = 4 if o.get("self_precision") == "single" else 8
-        per = sum(costs.memory_per_vesicle(p, 2 * p, o, False, args.near_per_vesicle, o["ewald_own"] == "smooth",
+        per = sum(memory_model.memory_per_vesicle(p, 2 * p, o, False, args.near_per_vesicle, o["ewald_own"] == "smooth",
                                            own_bytes, N).values())
-        grids = 16 * modes * (costs.EWALD_GRIDS * costs.layer_potentials_held(o) + costs.EWALD_GRIDS_APPLY)
+        grids = 16 * modes * (memory_model.EWALD_GRIDS * memory_model.layer_potentials_held(o) + memory_model.EWALD_GRIDS_APPLY)
         per_rank = lambda R: (costs.BASE_BYTES + grids * share[R] + math.ceil(N / R) * per
                               + (N - math.ceil(N / R)) * args.rest_mb * 2 ** 20
                               + (held[R] - math.ceil(N / R)) * args.surface_mb * 2 ** 20)

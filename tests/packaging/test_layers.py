@@ -32,7 +32,7 @@ LAYERS = [
     ("forces", ["vesflow.forces", "vesflow.flows", "vesflow.repulsion"]),
     ("layer potentials", ["vesflow.layerpot"]),
     ("operator", ["vesflow.operator"]),
-    ("solver", ["vesflow.solver", "vesflow.precond", "vesflow.costs"]),
+    ("solver", ["vesflow.solver", "vesflow.precond", "vesflow.memory_model", "vesflow.costs"]),
     ("stepping", ["vesflow.stepping", "vesflow.stepper", "vesflow.sdc", "vesflow.simulation",
                   "vesflow.collision", "vesflow.contact", "vesflow.correction", "vesflow.reparam"]),
     ("output", ["vesflow.io", "vesflow.vtk_export"]),

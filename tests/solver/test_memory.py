@@ -1,6 +1,6 @@
 """Memory per vesicle (docs/explanation/parallel.md, "Memory"): what a stepper keeps after its
-set-up, counted from the arrays it holds (costs.held_memory), against the model of `vesflow
-check` (costs.memory_per_vesicle); the preconditioner's memory options; old layer potentials
+set-up, counted from the arrays it holds (memory_model.held_memory), against the model of `vesflow
+check` (memory_model.memory_per_vesicle); the preconditioner's memory options; old layer potentials
 freed before new ones are built; the memory-aware choice and refusal of run and check."""
 import gc
 import os
@@ -14,7 +14,7 @@ import pytest
 petsc4py = pytest.importorskip("petsc4py")
 petsc4py.init([])
 
-from vesflow import costs, options as O, scene as S, shapes  # noqa: E402
+from vesflow import costs, memory_model, options as O, scene as S, shapes  # noqa: E402
 from vesflow.errors import NumericalFailure  # noqa: E402
 from vesflow.operator import StepOperator, VesicleParams, block_at  # noqa: E402
 from vesflow.precond import BlockJacobi, BlockParts  # noqa: E402
@@ -40,19 +40,19 @@ def _stepper(lam=1.0, **pc):
 def test_held_bytes_per_vesicle_after_the_set_up_are_the_arrays_of_the_model():
     """After one euler step with doubling (dt, then two dt / 2): one set of layer potentials (its
     self operator 3C x 3C), the compact parts (15 C^2), two LU sets ((4C)^2 + 4C pivots each),
-    exactly as costs.memory_per_vesicle counts them; with a contrast the parts keep the velocity
+    exactly as memory_model.memory_per_vesicle counts them; with a contrast the parts keep the velocity
     block (24 C^2) and D doubles the self operators."""
     for lam, parts_c2, n_ops in ((1.0, 15, 1), (4.0, 24, 2)):
         st = _stepper(lam)
         st.solve(0.02)
         st.step(0.01)
-        held = costs.held_memory(st)
+        held = memory_model.held_memory(st)
         N = 2
         assert held["layer_potentials"] == 1
         assert held["self"] == N * n_ops * (3 * C) ** 2 * 8
         assert held["pc_parts"] == N * parts_c2 * C ** 2 * 8
         assert held["pc_factors"] == N * 2 * ((4 * C) ** 2 * 8 + 4 * C * 4)
-        model = costs.memory_per_vesicle(P, 2 * P, {"ts_type": "euler", "adapt": "doubling"}, double_layer=lam != 1)
+        model = memory_model.memory_per_vesicle(P, 2 * P, {"ts_type": "euler", "adapt": "doubling"}, double_layer=lam != 1)
         for k in ("self", "pc_parts", "pc_factors"):
             assert model[k] == held[k] / N, k
 
@@ -77,7 +77,7 @@ def test_fewer_factor_sets_and_dropped_parts():
     st.solve(0.02)
     ctx = st.default_pc_context()
     assert len(ctx.factors) == 1 and ctx.parts is None and ctx.rebuilds == 1
-    assert costs.held_memory(st)["pc_parts"] == 0
+    assert memory_model.held_memory(st)["pc_parts"] == 0
     st.solve(0.01)                    # outside DT_MATCH: new blocks, one set kept
     assert len(ctx.factors) == 1 and ctx.factors[0][0] == 0.01 and ctx.rebuilds == 2
     st.solve(0.011)                   # within DT_MATCH: reused
@@ -120,8 +120,8 @@ def test_sdc_holds_two_sets_of_layer_potentials_and_sets_up_as_before():
     sdc = SDC(st, nodes=3, sweeps=2, quadrature="radau")
     sdc.step(0.01)
     assert st.timers.counts["self_setup"] == 6
-    assert costs.held_memory(st)["layer_potentials"] == 2
-    assert costs.layer_potentials_held({"ts_type": "sdc"}) == 2 and costs.factor_sets({"ts_type": "sdc"}) == 3
+    assert memory_model.held_memory(st)["layer_potentials"] == 2
+    assert memory_model.layer_potentials_held({"ts_type": "sdc"}) == 2 and memory_model.factor_sets({"ts_type": "sdc"}) == 3
 
 
 def _scene(n=2):
@@ -183,10 +183,10 @@ def test_setup_cache_current_holds_one_set_and_takes_the_same_step():
         st = _stepper()
         st.pin_start = pin
         SDC(st, nodes=3, sweeps=2, quadrature="radau").step(0.01)
-        out[pin] = (st.coeffs.copy(), st.timers.counts["self_setup"], costs.held_memory(st)["layer_potentials"])
+        out[pin] = (st.coeffs.copy(), st.timers.counts["self_setup"], memory_model.held_memory(st)["layer_potentials"])
     assert out[True][1:] == (6, 2) and out[False][1:] == (8, 1)
     assert np.array_equal(out[True][0], out[False][0])
-    assert costs.layer_potentials_held({"ts_type": "sdc", "setup_cache": "current"}) == 1
+    assert memory_model.layer_potentials_held({"ts_type": "sdc", "setup_cache": "current"}) == 1
 
 
 def test_a_new_factor_set_is_built_after_the_old_one_is_freed():
